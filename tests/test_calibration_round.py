@@ -1,0 +1,62 @@
+import numpy as np
+import pytest
+
+from uwb_env.config import CalibrationConfig, RangingConfig, SimConfig
+from uwb_env.sim import RoundTiming, World
+
+
+def test_duration_matches_the_paper_latencies():
+    timing = RoundTiming.fit(CalibrationConfig())
+    assert timing.duration_s(4, 5) == pytest.approx(0.9, rel=0.10)
+    assert timing.duration_s(4, 50) == pytest.approx(2.5, rel=0.10)
+
+
+def test_duration_scales_with_pairs_times_k():
+    timing = RoundTiming.fit(CalibrationConfig())
+    exchange_part = lambda n, k: timing.duration_s(n, k) - n * timing.handoff_s  # noqa: E731
+    assert exchange_part(8, 5) / exchange_part(4, 5) == pytest.approx(56 / 12)
+    assert exchange_part(4, 50) / exchange_part(4, 5) == pytest.approx(10)
+
+
+def test_schedule_order_and_counts():
+    timing = RoundTiming.fit(CalibrationConfig())
+    times, ini, resp = timing.schedule(4, 5)
+    assert len(times) == 4 * 3 * 5
+    assert np.all(np.diff(times) > 0)
+    assert list(ini[:15]) == [0] * 15  # anchor 0 initiates first
+    assert times[-1] == pytest.approx(timing.duration_s(4, 5))
+    assert np.all(ini != resp)
+
+
+def test_round_output_per_pair(rng):
+    cfg = SimConfig.from_dict({"anchor_motion": {"model": "static"},
+                               "ranging": {"nlos_probability": 0.0, "dropout_probability": 0.0}})
+    world = World(cfg)
+    world.reset(rng)
+    matrix, steps = world.run_calibration_round(50)
+    assert steps == int(np.ceil(world.timing.duration_s(4, 50) / cfg.dt_s - 1e-9))
+    assert np.all(matrix.count[~np.eye(4, dtype=bool)] == 50)
+    true = np.linalg.norm(world.anchors_true[:, None] - world.anchors_true[None], axis=-1)
+    corrected = world.range_model.correct(matrix.mean_m)
+    off = ~np.eye(4, dtype=bool)
+    # mean of 50 ranges: error ~ sigma/sqrt(50) ~ 8 mm
+    assert np.all(np.abs(corrected[off] - true[off]) < 0.05)
+    assert np.all(matrix.std_m[off] > 0.02) and np.all(matrix.std_m[off] < 0.1)
+
+
+def test_robots_keep_moving_during_the_round(rng):
+    cfg = SimConfig(ranging=RangingConfig(nlos_probability=0.0, dropout_probability=0.0, noise_std_m=0.0),
+                    anchor_motion=SimConfig().anchor_motion.replace(
+                        speed_min_mps=2.0, speed_max_mps=2.0, heading_noise_std_rad_per_sqrt_s=0.0,
+                        position_noise_std_m_per_sqrt_s=0.0))
+    world = World(cfg)
+    world.reset(rng)
+    start = world.anchors_true.copy()
+    matrix, _ = world.run_calibration_round(50)
+    end = world.anchors_true
+    d_start = np.linalg.norm(start[0] - start[1])
+    d_end = np.linalg.norm(end[0] - end[1])
+    measured = world.range_model.correct(matrix.mean_m[0, 1])
+    assert not np.isclose(d_start, d_end, atol=0.05)
+    # anchor 0 initiates first, so its ranges to 1 are taken near the round's start
+    assert abs(measured - d_start) < abs(measured - d_end)

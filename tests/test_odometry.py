@@ -1,0 +1,59 @@
+import numpy as np
+import pytest
+
+from uwb_env.config import OdometryConfig
+from uwb_env.sim.odometry import OdometryModel
+
+
+def test_uniform_model_variance_is_e2_over_3_per_axis(rng):
+    e = 0.1
+    model = OdometryModel(OdometryConfig(model="uniform", uniform_error_m=e))
+    model.reset(5, rng)
+    delta = np.zeros((5, 2))
+    errors = np.array([model.estimated_displacement(delta, np.zeros(5), 0.2, rng) for _ in range(20000)])
+    var = errors.reshape(-1, 2).var(axis=0)
+    np.testing.assert_allclose(var, e**2 / 3, rtol=0.03)
+    assert np.abs(errors).max() <= e
+
+
+def test_distance_model_error_grows_with_distance(rng):
+    cfg = OdometryConfig(model="distance", scale_error_std=0.0, yaw_noise_std_rad_per_sqrt_m=0.0,
+                         yaw_noise_std_rad_per_rad=0.0, slip_rate_per_s=0.0,
+                         noise_std_m_per_sqrt_m=0.05)
+    model = OdometryModel(cfg)
+    n = 4000
+    model.reset(n, rng)
+    for step_m in (0.1, 0.4):
+        delta = np.tile([step_m, 0.0], (n, 1))
+        err = model.estimated_displacement(delta, np.zeros(n), 0.2, rng) - delta
+        # white noise std = 0.05 * sqrt(distance) per axis
+        np.testing.assert_allclose(err.std(axis=0), 0.05 * np.sqrt(step_m), rtol=0.06)
+    # no motion, no error (drift is driven by motion in this model)
+    assert np.all(model.estimated_displacement(np.zeros((n, 2)), np.zeros(n), 0.2, rng) == 0)
+
+
+def test_distance_model_scale_error_is_per_robot(rng):
+    cfg = OdometryConfig(model="distance", scale_error_std=0.05, noise_std_m_per_sqrt_m=0.0,
+                         yaw_noise_std_rad_per_sqrt_m=0.0, yaw_noise_std_rad_per_rad=0.0,
+                         slip_rate_per_s=0.0)
+    model = OdometryModel(cfg)
+    model.reset(3000, rng)
+    delta = np.tile([1.0, 0.0], (3000, 1))
+    out = model.estimated_displacement(delta, np.zeros(3000), 0.2, rng)
+    again = model.estimated_displacement(delta, np.zeros(3000), 0.2, rng)
+    np.testing.assert_allclose(out, again)  # systematic, not white
+    assert out[:, 0].std() == pytest.approx(0.05, rel=0.08)
+
+
+def test_slip_phases_make_drift_vary_over_time(rng):
+    cfg = OdometryConfig(model="distance", slip_rate_per_s=0.1, slip_duration_s=2.0,
+                         slip_noise_multiplier=10.0, scale_error_std=0.0,
+                         yaw_noise_std_rad_per_sqrt_m=0.0, yaw_noise_std_rad_per_rad=0.0)
+    model = OdometryModel(cfg)
+    model.reset(1, rng)
+    delta = np.array([[0.1, 0.0]])
+    errs = np.array([np.abs(model.estimated_displacement(delta, np.zeros(1), 0.2, rng) - delta).sum()
+                     for _ in range(5000)])
+    base = cfg.noise_std_m_per_sqrt_m * np.sqrt(0.1)
+    assert (errs > 5 * base).mean() > 0.05  # ~17 % of steps slip (rate 0.1/s, 2 s each)
+    assert np.median(errs) < 3 * base  # most are not

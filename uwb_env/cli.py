@@ -1,0 +1,75 @@
+"""The ``uwb-env`` command line: one small function pair (arguments, handler) per subcommand."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+
+
+def load_overrides(path: str | None) -> dict:
+    """Read a YAML/JSON mapping of config overrides (``None`` -> empty)."""
+    if path is None:
+        return {}
+    import yaml
+
+    with open(path) as f:
+        data = yaml.safe_load(f) or {}
+    if not isinstance(data, dict):
+        raise SystemExit(f"--config {path}: expected a mapping at the top level")
+    return data
+
+
+def _simulate_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--steps", type=int, default=600, help="simulation steps (default 600)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--config", default=None, help="YAML/JSON file with SimConfig overrides")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+
+
+def _simulate(args: argparse.Namespace) -> int:
+    from uwb_env.config import SimConfig
+    from uwb_env.summary import simulate_summary
+
+    summary = simulate_summary(
+        SimConfig.from_dict(load_overrides(args.config)), steps=args.steps, seed=args.seed
+    )
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        for key, value in summary.items():
+            print(f"{key:44s} {value}")
+    return 0
+
+
+# name -> (add arguments, handler, help)
+COMMANDS = {
+    "simulate": (_simulate_args, _simulate, "run the simulator and print a drift/ranging summary"),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="uwb-env",
+        description="Mobile UWB localization with periodic anchor autocalibration.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+    for name, (add_args, _, help_text) in COMMANDS.items():
+        add_args(sub.add_parser(name, help=help_text, description=help_text))
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from uwb_env.config import ConfigError
+
+    try:
+        return COMMANDS[args.command][1](args)
+    except ConfigError as err:
+        print(f"uwb-env {args.command}: invalid configuration: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,131 @@
+"""Robot motion, vectorized over every robot in the world (anchors and tags together).
+
+Each robot follows its group's :class:`~uwb_env.config.MotionConfig`:
+
+- ``heading`` (the paper's model): keep a heading that random-walks; every move gets
+  Gaussian noise.
+- ``random_waypoint``: drive to a uniformly drawn waypoint, pause there, pick the next.
+- ``stop_and_go``: ``heading`` plus random pauses (rate ``pause_rate_per_s``).
+- ``static``: never moves.
+
+Motion is planar (x, y); in 3D each robot keeps its height. Robots reflect off the walls of
+the square area ``[0, L]^2``. One kernel moves all robots so that a step costs a fixed number
+of numpy calls, whatever mix of models is configured.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from uwb_env.config import MotionConfig
+
+
+class MotionModel:
+    """Moves groups of robots; per-robot parameters are drawn at :meth:`reset`.
+
+    Args:
+        groups: ``(config, count)`` per group, in the order of the position rows.
+        area_size_m: side of the square area.
+    """
+
+    def __init__(self, groups: Sequence[tuple[MotionConfig, int]], area_size_m: float):
+        self.groups = [(cfg, int(count)) for cfg, count in groups]
+        self.area_size_m = float(area_size_m)
+        self.positions = np.zeros((0, 2))
+
+    def reset(self, positions: np.ndarray, rng: np.random.Generator) -> None:
+        """Start from ``positions`` (n, dim); draw speeds, headings, waypoints per robot."""
+        self.positions = np.array(positions, dtype=float)
+        n = len(self.positions)
+        per_robot = [cfg for cfg, count in self.groups for _ in range(count)]
+        if len(per_robot) != n:
+            raise ValueError(f"positions has {n} rows, motion groups describe {len(per_robot)}")
+
+        def column(attr: str) -> np.ndarray:
+            return np.array([getattr(c, attr) for c in per_robot], dtype=float)
+
+        lo, hi = column("speed_min_mps"), column("speed_max_mps")
+        models = np.array([c.model for c in per_robot])
+        static = models == "static"
+        self.speeds = np.where(static, 0.0, rng.uniform(lo, hi))
+        self.headings = rng.uniform(-np.pi, np.pi, n)
+        self.heading_std = np.where(static, 0.0, column("heading_noise_std_rad_per_sqrt_s"))
+        self.position_std = np.where(static, 0.0, column("position_noise_std_m_per_sqrt_s"))
+        self.pause_rate = np.where(models == "stop_and_go", column("pause_rate_per_s"), 0.0)
+        self.pause_min, self.pause_max = column("pause_min_s"), column("pause_max_s")
+        self.waypoint_mask = models == "random_waypoint"
+        self.waypoints = rng.uniform(0.0, self.area_size_m, (n, 2)).view(np.complex128)[:, 0]
+        self.pause_left_s = np.zeros(n)
+        self._any_waypoint = bool(self.waypoint_mask.any())
+        self._any_pause_rate = bool((self.pause_rate > 0).any())
+        self._all_static = bool(static.all())
+        self._any_pauses = self._any_waypoint or self._any_pause_rate
+
+    def step(self, dt_s: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """Advance by ``dt_s``; return (displacement (n, dim), absolute heading change (n,))."""
+        pos = self.positions
+        n, dim = pos.shape
+        if self._all_static or n == 0:
+            return np.zeros((n, dim)), np.zeros(n)
+        # Planar maths in complex numbers: a rotation is one multiply, which keeps the number
+        # of numpy calls (the real cost for a handful of robots) small.
+        xy = pos[:, :2].view(np.complex128)[:, 0]
+        sqrt_dt = np.sqrt(dt_s)
+        noise = rng.standard_normal(3 * n)
+        jitter_noise = noise[: 2 * n].view(np.complex128)
+        old_heading = self.headings
+        heading = old_heading + (self.heading_std * sqrt_dt) * noise[2 * n :]
+        step_len = self.speeds * dt_s
+        jitter = self.position_std * sqrt_dt
+        if self._any_waypoint:
+            heading, step_len = self._steer_to_waypoints(heading, step_len, rng)
+        if self._any_pauses:
+            moving = self.pause_left_s <= 0.0
+            if self._any_pause_rate:
+                self._start_pauses(~moving, dt_s, rng)
+            self.pause_left_s = np.maximum(self.pause_left_s - dt_s, 0.0)
+            step_len = step_len * moving
+            jitter = jitter * moving
+        new_xy = xy + step_len * np.exp(1j * heading) + jitter * jitter_noise
+        flat = new_xy.view(np.float64)
+        half = 0.5 * self.area_size_m
+        if (np.abs(flat - half) > half).any():
+            new_xy, heading = _reflect(new_xy, heading, self.area_size_m)
+        delta = np.zeros((n, dim))
+        delta[:, :2] = (new_xy - xy).view(np.float64).reshape(n, 2)
+        xy[:] = new_xy
+        self.headings = heading
+        turn = np.abs((heading - old_heading + np.pi) % (2 * np.pi) - np.pi)
+        return delta, turn
+
+    def _steer_to_waypoints(self, heading, step_len, rng):
+        wp = self.waypoint_mask
+        to_wp = self.waypoints - self.positions[:, :2].view(np.complex128)[:, 0]
+        dist = np.abs(to_wp)
+        reached = wp & (dist <= step_len) & (self.pause_left_s <= 0.0)
+        if reached.any():
+            # Arrive exactly, pause there, and aim at the next waypoint afterwards.
+            k = int(reached.sum())
+            self.pause_left_s[reached] = rng.uniform(self.pause_min[reached], self.pause_max[reached])
+            self.waypoints[reached] = rng.uniform(0.0, self.area_size_m, (k, 2)).view(np.complex128)[:, 0]
+            step_len = np.where(reached, dist, step_len)
+        return np.where(wp, np.angle(to_wp), heading), step_len
+
+    def _start_pauses(self, paused: np.ndarray, dt_s: float, rng: np.random.Generator) -> None:
+        # Start a pause with probability rate * dt (Poisson-process discretization).
+        start = (~paused) & (rng.random(len(paused)) < self.pause_rate * dt_s)
+        if start.any():
+            self.pause_left_s[start] = rng.uniform(self.pause_min[start], self.pause_max[start])
+
+
+def _reflect(xy: np.ndarray, heading: np.ndarray, size: float):
+    """Mirror complex positions that left [0, size]^2 back inside, and their headings."""
+    x, y = xy.real, xy.imag
+    out_x, out_y = (x < 0.0) | (x > size), (y < 0.0) | (y > size)
+    x = np.clip(np.where(x < 0.0, -x, np.where(x > size, 2 * size - x, x)), 0.0, size)
+    y = np.clip(np.where(y < 0.0, -y, np.where(y > size, 2 * size - y, y)), 0.0, size)
+    heading = np.where(out_x, np.pi - heading, heading)
+    heading = np.where(out_y, -heading, heading)
+    return x + 1j * y, heading

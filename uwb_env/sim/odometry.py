@@ -1,0 +1,66 @@
+"""On-board odometry: how each anchor's position estimate drifts between calibrations.
+
+Both models turn the true displacement of a step into the displacement the robot *believes*
+it made; the world adds that to the on-board estimate.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from uwb_env.config import OdometryConfig
+from uwb_env.sim.ranging import upper_tail_threshold
+
+
+class OdometryModel:
+    """Per-robot odometry errors; per-robot parameters are drawn at :meth:`reset`.
+
+    Args:
+        config: odometry configuration (``uniform`` paper model or ``distance`` model).
+    """
+
+    def __init__(self, config: OdometryConfig):
+        self.config = config
+        self._uniform = config.model == "uniform"
+
+    def reset(self, n: int, rng: np.random.Generator) -> None:
+        cfg = self.config
+        self.scale = 1.0 + cfg.scale_error_std * rng.standard_normal(n)
+        self.yaw_error_rad = np.zeros(n)
+        self.slip_left_s = np.zeros(n)
+        self._slip_dt_s, self._slip_q = -1.0, np.inf
+        self._yaw_var_per_m = cfg.yaw_noise_std_rad_per_sqrt_m**2
+        self._yaw_var_per_rad = cfg.yaw_noise_std_rad_per_rad**2
+
+    def estimated_displacement(
+        self, delta: np.ndarray, turn_rad: np.ndarray, dt_s: float, rng: np.random.Generator
+    ) -> np.ndarray:
+        """Displacement the robots believe they made, given the true ``delta`` (n, dim)."""
+        cfg = self.config
+        n, dim = delta.shape
+        if self._uniform:
+            # Paper: U(-e, e) added to every axis of the estimate every step.
+            e = cfg.uniform_error_m
+            return delta + rng.uniform(-e, e, (n, dim))
+        # 4n normals: [0, 2n) complex white noise, [2n, 3n) yaw increments, [3n, 4n) slip starts.
+        noise = rng.standard_normal(4 * n)
+        if cfg.slip_rate_per_s > 0.0:
+            slipping = self.slip_left_s > 0.0
+            self.slip_left_s = np.maximum(self.slip_left_s - dt_s, 0.0)
+            if dt_s != self._slip_dt_s:  # the threshold depends on dt only: compute it once
+                self._slip_dt_s, self._slip_q = dt_s, upper_tail_threshold(cfg.slip_rate_per_s * dt_s)
+            start = noise[3 * n :] > self._slip_q
+            self.slip_left_s = np.where(start & ~slipping, cfg.slip_duration_s, self.slip_left_s)
+            gain = np.where(slipping, cfg.slip_noise_multiplier, 1.0)
+        else:
+            gain = 1.0
+        d = np.ascontiguousarray(delta[:, :2]).view(np.complex128)[:, 0]
+        dist = np.abs(d)
+        # yaw error random-walks with distance travelled and with turning
+        yaw_var = self._yaw_var_per_m * dist + self._yaw_var_per_rad * turn_rad
+        self.yaw_error_rad = self.yaw_error_rad + gain * np.sqrt(yaw_var) * noise[2 * n : 3 * n]
+        white = (gain * cfg.noise_std_m_per_sqrt_m) * np.sqrt(dist)
+        est = self.scale * np.exp(1j * self.yaw_error_rad) * d + white * noise[: 2 * n].view(np.complex128)
+        out = delta.copy()
+        out[:, :2] = est.view(np.float64).reshape(n, 2)
+        return out

@@ -1,0 +1,115 @@
+"""UWB two-way-ranging measurement model fitted to measured DWM1001 data.
+
+measured = slope * d + offset + N(0, noise_std^2)  [+ Exp(nlos_bias_mean) with p_nlos]
+A range is NaN when dropped or beyond the maximum range.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+from scipy.special import ndtri
+
+from uwb_env.config import RangingConfig
+
+
+@dataclass(frozen=True)
+class RangeFit:
+    """Linear fit of measured vs true distance: measured ~= slope * true + offset."""
+
+    slope: float
+    offset_m: float
+    residual_std_m: float
+    n_samples: int
+
+
+def load_range_data(data_file: str = "dwm1001_los_ranges.csv") -> tuple[np.ndarray, np.ndarray]:
+    """Return (true_m, measured_m) from a packaged file name or a filesystem path."""
+    path = Path(data_file)
+    if path.is_file():
+        text = path.read_text()
+    else:
+        try:
+            text = resources.files("uwb_env.data").joinpath(data_file).read_text()
+        except FileNotFoundError:
+            raise FileNotFoundError(
+                f"ranging.data_file={data_file!r}: neither a file nor a packaged data file"
+            ) from None
+    rows = [line.split(",") for line in text.strip().splitlines()[1:] if line.strip()]
+    data = np.array(rows, dtype=float)
+    if data.ndim != 2 or data.shape[1] != 2 or len(data) < 3:
+        raise ValueError(f"ranging.data_file={data_file!r}: expected >= 3 rows of true,measured")
+    return data[:, 0], data[:, 1]
+
+
+def fit_range_data(true_m: np.ndarray, measured_m: np.ndarray) -> RangeFit:
+    """Ordinary least-squares line; residual std with n - 2 degrees of freedom."""
+    design = np.column_stack([true_m, np.ones_like(true_m)])
+    (slope, offset), *_ = np.linalg.lstsq(design, measured_m, rcond=None)
+    residuals = measured_m - (slope * true_m + offset)
+    std = float(np.sqrt(residuals @ residuals / (len(true_m) - 2)))
+    return RangeFit(float(slope), float(offset), std, len(true_m))
+
+
+def upper_tail_threshold(probability: float) -> float:
+    """q with P(Z > q) = probability for a standard normal Z (inf for 0)."""
+    if probability <= 0.0:
+        return np.inf
+    if probability >= 1.0:
+        return -np.inf
+    return float(-ndtri(probability))
+
+
+class RangeModel:
+    """Draws noisy ranges and corrects the known linear bias on the estimator side.
+
+    Args:
+        config: ranging configuration; the fit is computed from its data file at construction.
+    """
+
+    def __init__(self, config: RangingConfig | None = None):
+        self.config = config or RangingConfig()
+        self.fit = fit_range_data(*load_range_data(self.config.data_file))
+        self.slope = self.fit.slope
+        self.offset_m = self.fit.offset_m
+        self.noise_std_m = (
+            self.fit.residual_std_m if self.config.noise_std_m is None else self.config.noise_std_m
+        )
+        # Cached scalars: this sits in the simulator's hot loop.
+        self._q_nlos = upper_tail_threshold(self.config.nlos_probability)
+        self._nlos_mean = self.config.nlos_bias_mean_m
+        self._q_drop = upper_tail_threshold(self.config.dropout_probability)
+        self._max_range = self.config.max_range_m
+
+    @property
+    def corrected_noise_std_m(self) -> float:
+        """Std of a single corrected (de-biased) range: noise / slope."""
+        return self.noise_std_m / self.slope
+
+    def measure(self, true_m: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Raw measured ranges for true distances ``true_m`` (any shape); NaN where lost."""
+        shape = np.shape(true_m)
+        # One Gaussian block: row 0 is the noise, rows 1-2 decide NLOS and dropout through
+        # upper-tail thresholds (P(z > q) = p); one generator call keeps the hot loop fast.
+        z = rng.standard_normal((3,) + shape)
+        out = self.slope * true_m + self.offset_m + self.noise_std_m * z[0]
+        nlos = z[1] > self._q_nlos
+        if nlos.any():
+            out[nlos] += rng.exponential(self._nlos_mean, int(nlos.sum()))
+        out[(z[2] > self._q_drop) | (true_m > self._max_range)] = np.nan
+        return out
+
+    def correct(self, measured_m: np.ndarray) -> np.ndarray:
+        """Undo the known slope/offset: an estimate of the true distance."""
+        if not self.config.correct_bias:
+            return np.asarray(measured_m, dtype=float)
+        return (np.asarray(measured_m, dtype=float) - self.offset_m) / self.slope
+
+    def correct_std(self, std_m: np.ndarray) -> np.ndarray:
+        """Map a measured-range std to the std of the corrected range."""
+        if not self.config.correct_bias:
+            return np.asarray(std_m, dtype=float)
+        return np.asarray(std_m, dtype=float) / self.slope

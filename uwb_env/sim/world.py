@@ -1,0 +1,150 @@
+"""The simulated world: anchor robots, tags, odometry and UWB ranging.
+
+Free of any RL API. Randomness comes only from the generator passed to :meth:`World.reset`.
+
+Frames: true positions live in the *world* frame. The anchors' on-board estimates live in an
+*estimate frame* (set by the localization backend after the first calibration, identity
+before): ``p_est_frame = R @ (p_world - t)``. Odometry displacements are rotated into it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from uwb_env.config import SimConfig
+from uwb_env.sim.calibration_round import CalibrationRound, RoundTiming
+from uwb_env.sim.motion import MotionModel
+from uwb_env.sim.odometry import OdometryModel
+from uwb_env.sim.ranging import RangeModel
+
+
+class World:
+    """N anchor robots with drifting odometry and M tags in a square area.
+
+    Args:
+        config: the simulation configuration.
+        range_model: optional pre-built range model (fitting is done once and shared).
+    """
+
+    def __init__(self, config: SimConfig | None = None, range_model: RangeModel | None = None):
+        self.config = config or SimConfig()
+        cfg = self.config
+        self.range_model = range_model or RangeModel(cfg.ranging)
+        self.timing = RoundTiming.fit(cfg.calibration)
+        # One kernel moves anchors (rows :n_anchors) and tags (the rest) together.
+        self.motion = MotionModel(
+            [(cfg.anchor_motion, cfg.n_anchors), (cfg.tag_motion, cfg.n_tags)], cfg.area_size_m
+        )
+        self._n = cfg.n_anchors
+        self.odometry = OdometryModel(cfg.odometry)
+        self.dt_s = cfg.dt_s
+        self.rng: np.random.Generator | None = None
+        self.set_estimate_frame(np.eye(cfg.dim), np.zeros(cfg.dim))
+        self.round: CalibrationRound | None = None
+
+    # -- lifecycle -------------------------------------------------------------------------
+    def reset(self, rng: np.random.Generator) -> None:
+        """Place robots, draw per-episode parameters; estimates start at the truth."""
+        cfg = self.config
+        self.rng = rng
+        self.time_s = 0.0
+        self.step_count = 0
+        anchors = self._initial_anchors(rng)
+        self.motion.reset(np.vstack([anchors, self._initial_tags(anchors, rng)]), rng)
+        self.odometry.reset(cfg.n_anchors, rng)
+        self.set_estimate_frame(np.eye(cfg.dim), np.zeros(cfg.dim))
+        self.anchors_est = anchors.copy()
+        self.round = None
+
+    @property
+    def anchors_true(self) -> np.ndarray:
+        return self.motion.positions[: self._n]
+
+    @property
+    def tags_true(self) -> np.ndarray:
+        return self.motion.positions[self._n :]
+
+    def step(self) -> None:
+        """Advance one ``dt_s``: move robots, drift estimates, progress a running round."""
+        rng = self.rng
+        n = self._n
+        before = self.motion.positions[:n].copy() if self.round is not None else None
+        delta, turn = self.motion.step(self.dt_s, rng)
+        odo = self.odometry.estimated_displacement(delta[:n], turn[:n], self.dt_s, rng)
+        self.anchors_est += odo if self._identity_frame else odo @ self.frame_rotation.T
+        t0 = self.time_s
+        self.step_count += 1
+        self.time_s = self.step_count * self.dt_s
+        if self.round is not None:
+            self.round.advance(t0, self.time_s, before, self.motion.positions[:n], self.range_model, rng)
+
+    # -- measurements ----------------------------------------------------------------------
+    def measure_tag_ranges(self) -> np.ndarray:
+        """Raw anchor-to-tag ranges (n_anchors, n_tags) at the current positions; NaN = lost."""
+        pos = self.motion.positions
+        if self.config.dim == 2:  # complex |a - t| is two numpy calls instead of four
+            z = pos.view(np.complex128)[:, 0]
+            return self.range_model.measure(np.abs(z[: self._n, None] - z[None, self._n :]), self.rng)
+        diff = pos[: self._n, None, :] - pos[None, self._n :, :]
+        return self.range_model.measure(np.sqrt((diff * diff).sum(-1)), self.rng)
+
+    def start_calibration_round(self, measurements_per_pair: int | None = None) -> CalibrationRound:
+        """Begin a round at the current time; :meth:`step` fills it until ``round.done``."""
+        k = measurements_per_pair or self.config.calibration.measurements_per_pair
+        self.round = CalibrationRound(self.config.n_anchors, self.timing, k, self.time_s)
+        return self.round
+
+    def finish_calibration_round(self) -> CalibrationRound:
+        """Detach and return the (done) round."""
+        if self.round is None or not self.round.done:
+            raise RuntimeError("no finished calibration round to collect")
+        finished, self.round = self.round, None
+        return finished
+
+    def run_calibration_round(self, measurements_per_pair: int | None = None):
+        """Start a round and step until it completes; return (RangeMatrix, steps taken)."""
+        self.start_calibration_round(measurements_per_pair)
+        steps = 0
+        while not self.round.done:
+            self.step()
+            steps += 1
+        return self.finish_calibration_round().result(), steps
+
+    # -- frames ----------------------------------------------------------------------------
+    def set_estimate_frame(self, rotation: np.ndarray, origin: np.ndarray) -> None:
+        """Declare the frame the anchors' estimates are expressed in."""
+        self.frame_rotation = np.asarray(rotation, dtype=float)
+        self.frame_origin = np.asarray(origin, dtype=float)
+        self._identity_frame = bool(np.array_equal(self.frame_rotation, np.eye(self.config.dim)))
+
+    def to_estimate_frame(self, points_world: np.ndarray) -> np.ndarray:
+        return (points_world - self.frame_origin) @ self.frame_rotation.T
+
+    def anchor_errors_m(self) -> np.ndarray:
+        """Per-anchor distance between on-board estimate and truth (estimate frame)."""
+        return np.linalg.norm(self.anchors_est - self.to_estimate_frame(self.anchors_true), axis=1)
+
+    # -- placement -------------------------------------------------------------------------
+    def _initial_anchors(self, rng: np.random.Generator) -> np.ndarray:
+        cfg = self.config
+        n, size = cfg.n_anchors, cfg.area_size_m
+        # Spread anchors around the area's border (corners first for n = 4), counter-clockwise.
+        angles = 2 * np.pi * np.arange(n) / n + np.pi / 4 + np.pi
+        radius = 0.5 * size * np.sqrt(2) * 0.8
+        center = np.full(2, size / 2)
+        xy = center + radius * np.column_stack([np.cos(angles), np.sin(angles)])
+        xy = xy + cfg.anchor_jitter_fraction * size * rng.uniform(-1, 1, (n, 2))
+        xy = np.clip(xy, 0.0, size)
+        return self._with_height(xy, rng)
+
+    def _initial_tags(self, anchors: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        cfg = self.config
+        # Convex combinations of the anchors stay inside their polygon (the paper's setup).
+        weights = rng.dirichlet(np.ones(cfg.n_anchors), cfg.n_tags)
+        return self._with_height(weights @ anchors[:, :2], rng)
+
+    def _with_height(self, xy: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        if self.config.dim == 2:
+            return xy
+        z = rng.uniform(0.0, self.config.area_height_m, (len(xy), 1))
+        return np.hstack([xy, z])
