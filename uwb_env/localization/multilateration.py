@@ -1,0 +1,159 @@
+"""Tag positioning by least-squares multilateration, vectorized over many tags.
+
+Start: the linearized closed form. With s = ||p||^2 every range gives a linear equation
+``-2 a_i . p + s = r_i^2 - ||a_i||^2`` in (p, s), solved by weighted least squares per tag
+(needs dim + 1 ranges). Then Gauss-Newton on the true ranges, optionally with IRLS robust
+weights and with the anchors' own position covariance folded into each range's variance
+(var_i = sigma^2 + u_i^T Sigma_a_i u_i). Tags are independent, so all the linear algebra is
+batched: (T, dim, dim) systems solved at once.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from uwb_env.localization.robust import check_loss, irls_weights
+
+OK, TOO_FEW_RANGES, DEGENERATE, NOT_CONVERGED = 0, 1, 2, 3
+STATUS_NAMES = {OK: "ok", TOO_FEW_RANGES: "too_few_ranges", DEGENERATE: "degenerate", NOT_CONVERGED: "not_converged"}
+
+
+@dataclass
+class TagFixResult:
+    """Batch of tag fixes.
+
+    Attributes:
+        positions: (T, dim); NaN where ``status`` is not OK.
+        covariance: (T, dim, dim) (J^T W J)^-1; NaN where not OK.
+        gdop: (T,) geometric dilution of precision sqrt(trace((J^T J)^-1)); NaN where not OK.
+        residual_rms_m: (T,) RMS of fitted minus measured range.
+        n_ranges: (T,) usable ranges per tag.
+        status: (T,) OK=0, TOO_FEW_RANGES=1, DEGENERATE=2, NOT_CONVERGED=3.
+        iterations: Gauss-Newton iterations run.
+    """
+
+    positions: np.ndarray
+    covariance: np.ndarray
+    gdop: np.ndarray
+    residual_rms_m: np.ndarray
+    n_ranges: np.ndarray
+    status: np.ndarray
+    iterations: int
+
+    @property
+    def ok(self) -> np.ndarray:
+        return self.status == OK
+
+    def status_names(self) -> list[str]:
+        return [STATUS_NAMES[int(s)] for s in self.status]
+
+
+def locate_tags(
+    anchors: np.ndarray,
+    ranges_m: np.ndarray,
+    range_std_m: float | np.ndarray,
+    *,
+    anchor_covariance: np.ndarray | None = None,
+    loss: str = "linear",
+    f_scale: float = 2.0,
+    initial: np.ndarray | None = None,
+    max_iterations: int = 10,
+    tol_m: float = 1e-6,
+) -> TagFixResult:
+    """Locate T tags from their ranges to N anchors.
+
+    Args:
+        anchors: (N, dim) anchor positions.
+        ranges_m: (T, N) bias-corrected ranges; NaN where missing.
+        range_std_m: scalar or (T, N) std of each range.
+        anchor_covariance: optional (N, dim, dim) anchor position covariance.
+        loss, f_scale: robust loss (see ``robust``) and its scale in sigmas.
+        initial: optional (T, dim) warm start (e.g. the previous fix); rows with NaN fall back
+            to the closed form.
+        max_iterations, tol_m: Gauss-Newton stopping rule (largest step below ``tol_m``).
+    """
+    check_loss(loss)
+    anchors = np.asarray(anchors, dtype=float)
+    ranges_m = np.atleast_2d(np.asarray(ranges_m, dtype=float))
+    n_tags, n_anchors = ranges_m.shape
+    dim = anchors.shape[1]
+    if anchors.shape[0] != n_anchors:
+        raise ValueError(f"ranges_m has {n_anchors} columns but anchors has {anchors.shape[0]} rows")
+    if np.any(ranges_m < 0):
+        raise ValueError("ranges_m: negative range")
+    valid = np.isfinite(ranges_m)
+    n_ranges = valid.sum(axis=1)
+    enough = n_ranges >= dim + 1
+    r = np.where(valid, ranges_m, 0.0)
+    base_var = np.broadcast_to(np.asarray(range_std_m, dtype=float) ** 2, r.shape)
+    base_iv = np.where(valid, 1.0 / base_var, 0.0)
+
+    p = _closed_form(anchors, r, base_iv * enough[:, None], dim)
+    if initial is not None:
+        init = np.asarray(initial, dtype=float)
+        warm = np.isfinite(init).all(axis=1)
+        p = np.where(warm[:, None], init, p)
+    p = np.where(np.isfinite(p), p, 0.0)
+
+    iterations = 0
+    for iterations in range(1, max_iterations + 1):
+        diff = p[:, None, :] - anchors[None, :, :]
+        dist = np.sqrt((diff * diff).sum(-1))
+        u = diff / np.maximum(dist, 1e-12)[..., None]
+        iv = _inverse_variance(base_var, base_iv, u, anchor_covariance, valid)
+        res = dist - r
+        w = iv * (irls_weights(res * np.sqrt(iv), loss, f_scale) if loss != "linear" else 1.0)
+        uw = u * w[..., None]
+        hess = np.einsum("tai,taj->tij", uw, u) + 1e-12 * np.eye(dim)
+        grad = np.einsum("tai,ta->ti", uw, res)
+        step = -np.linalg.solve(hess, grad[..., None])[..., 0]
+        step[~enough] = 0.0
+        p = p + step
+        if np.abs(step).max() < tol_m:
+            break
+
+    diff = p[:, None, :] - anchors[None, :, :]
+    dist = np.sqrt((diff * diff).sum(-1))
+    u = diff / np.maximum(dist, 1e-12)[..., None]
+    iv = _inverse_variance(base_var, base_iv, u, anchor_covariance, valid)
+    res = np.where(valid, dist - r, 0.0)
+    w = iv * (irls_weights(res * np.sqrt(iv), loss, f_scale) if loss != "linear" else 1.0)
+    info = np.einsum("tai,taj->tij", u * w[..., None], u)
+    geo = np.einsum("tai,taj->tij", u * valid[..., None], u)
+    eig = np.linalg.eigvalsh(geo)
+    degenerate = enough & (eig[:, 0] <= 1e-8 * np.maximum(eig[:, -1], 1e-300))
+    status = np.full(n_tags, OK)
+    status[~enough] = TOO_FEW_RANGES
+    status[degenerate] = DEGENERATE
+    converged = np.isfinite(p).all(axis=1)
+    status[(status == OK) & ~converged] = NOT_CONVERGED
+    good = status == OK
+    cov = np.full((n_tags, dim, dim), np.nan)
+    gdop = np.full(n_tags, np.nan)
+    if good.any():
+        cov[good] = np.linalg.inv(info[good])
+        gdop[good] = np.sqrt(np.trace(np.linalg.inv(geo[good]), axis1=1, axis2=2))
+    positions = np.where(good[:, None], p, np.nan)
+    rms = np.sqrt((res**2).sum(1) / np.maximum(n_ranges, 1))
+    return TagFixResult(positions, cov, gdop, rms, n_ranges, status, iterations)
+
+
+def _closed_form(anchors: np.ndarray, r: np.ndarray, iv: np.ndarray, dim: int) -> np.ndarray:
+    """Weighted linear least squares in (p, s = ||p||^2), batched over tags."""
+    design = np.hstack([-2.0 * anchors, np.ones((len(anchors), 1))])  # (N, dim+1)
+    rhs = r**2 - (anchors**2).sum(1)[None, :]  # (T, N)
+    # Weight each equation by 1/var(r^2) ~ 1/(4 r^2 sigma^2) (first-order propagation).
+    w = iv / np.maximum(4.0 * r**2, 1e-6)
+    normal = np.einsum("na,tn,nb->tab", design, w, design)
+    normal += 1e-12 * np.eye(dim + 1)
+    sol = np.linalg.solve(normal, np.einsum("na,tn->ta", design, w * rhs)[..., None])[..., 0]
+    return sol[:, :dim]
+
+
+def _inverse_variance(base_var, base_iv, u, anchor_covariance, valid):
+    if anchor_covariance is None:
+        return base_iv
+    extra = np.einsum("tai,aij,taj->ta", u, anchor_covariance, u)
+    return np.where(valid, 1.0 / (base_var + extra), 0.0)
