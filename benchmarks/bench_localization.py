@@ -108,7 +108,7 @@ def tag_accuracy(trials, rng):
 def scipy_tags(anchors, ranges):
     out = []
     for r in ranges:
-        out.append(least_squares(lambda p: np.linalg.norm(anchors - p, axis=1) - r, anchors.mean(0)).x)
+        out.append(least_squares(lambda p, r=r: np.linalg.norm(anchors - p, axis=1) - r, anchors.mean(0)).x)
     return np.array(out)
 
 
@@ -148,8 +148,8 @@ def main(argv=None) -> dict:
         x = anchors_layout(n, rng)
         m = round_matrix(x, rng)
         reps = repeats if n < 32 else max(5, repeats // 5)
-        ours = median_time_s(lambda: calibrate_anchors(m, range_std_m=SIGMA), reps)
-        ref = median_time_s(lambda: scipy_calibrate(m), max(5, reps // 3))
+        ours = median_time_s(lambda m=m: calibrate_anchors(m, range_std_m=SIGMA), reps)
+        ref = median_time_s(lambda m=m: scipy_calibrate(m), max(5, reps // 3))
         a = calibrate_anchors(m, range_std_m=SIGMA).positions
         b = scipy_calibrate(m)
         fig[f"calibrate_ms_n{n}"] = ours * 1e3

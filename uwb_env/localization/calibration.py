@@ -1,11 +1,12 @@
 """Anchor autocalibration from inter-anchor ranges (Martinez Almansa et al., Sec. 3).
 
-First calibration (no prior), the paper's rules: anchor 0 at the origin, anchor 1 on +x, the
-others in +y (which fixes the reflection: see ``alignment.paper_frame``; in 3D the anchor
-farthest off the x axis also fixes the rotation about x). Initial positions by trilateration from the ranges to anchors 0 and 1 (each
-further anchor's y sign is checked against the ranges to the anchors already placed, which
-keeps the paper's solution where its assumption holds and repairs it where it does not),
-classical MDS when that is ill-posed; then weighted least squares over every available pair.
+First calibration (no prior), the paper's rules: anchor 0 at the origin, anchor 1 on +x,
+the others in +y (which fixes the reflection: see ``alignment.paper_frame``; in 3D the
+anchor farthest off the x axis also fixes the rotation about x). Initial positions by
+trilateration from the ranges to anchors 0 and 1; each further anchor's y sign is checked
+against its ranges to the anchors already placed, which keeps the paper's solution where its
+assumption holds and repairs it where it does not. Classical MDS takes over when
+trilateration is ill-posed. Then weighted least squares over every available pair.
 
 Later calibrations (a prior = the anchors' current on-board estimates): only "anchor 0 is the
 origin" is assumed. The shape is solved starting from the prior in an internal gauge
