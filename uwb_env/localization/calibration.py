@@ -176,9 +176,9 @@ def calibrate_anchors(
     cov_gauge = _covariance(out.information, free, n, dim)
 
     if prior is None:
-        # keep the paper's "+y" (and "+z") side: the cost is mirror-invariant
-        signs = np.where(x_gauge[:, 1:].sum(axis=0) < 0, -1.0, 1.0)
-        rot, trans = np.diag(np.concatenate([[1.0], signs])), np.zeros(dim)
+        # Re-apply the frame's sign rules to the solution (only axis flips here): the cost is
+        # mirror-invariant, so the optimizer may have crossed to the other side.
+        rot, trans = paper_frame(x_gauge, refs)
     else:
         pivot = 0 if gauge == "anchor0" else None
         rot, trans = rigid_align(x_gauge, prior, allow_reflection=True, pivot=pivot)
