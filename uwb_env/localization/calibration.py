@@ -178,7 +178,8 @@ def calibrate_anchors(
     if prior is None:
         # Re-apply the frame's sign rules to the solution (only axis flips here): the cost is
         # mirror-invariant, so the optimizer may have crossed to the other side.
-        rot, trans = paper_frame(x_gauge, refs)
+        flip, _ = paper_frame(x_gauge, refs)
+        rot, trans = np.diag(np.sign(np.diag(flip))), np.zeros(dim)  # exact +-1: no leakage
     else:
         pivot = 0 if gauge == "anchor0" else None
         rot, trans = rigid_align(x_gauge, prior, allow_reflection=True, pivot=pivot)
