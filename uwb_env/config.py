@@ -310,3 +310,69 @@ class SimConfig(ConfigBase):
             raise ConfigError(
                 "anchor_jitter_fraction", self.anchor_jitter_fraction, "must be in [0, 0.5)"
             )
+
+
+TRIGGERS = ("any", "majority", "all")
+ACTION_MODES = ("calibrate", "calibrate_and_move")
+TAG_FALLBACKS = ("hold", "predict")
+
+
+@dataclass(frozen=True)
+class SolverConfig(ConfigBase):
+    """How the embedded localization backend solves calibrations and tag fixes.
+
+    ``gauge`` places later calibrations in the running frame (``anchor0``: the paper's rule,
+    anchor 0 keeps its on-board estimate; ``prior``: rigid fit to all anchors' estimates).
+    ``loss`` is the robust loss (``linear``, ``huber``, ``soft_l1``, ``cauchy``) for both.
+    """
+
+    gauge: str = "prior"
+    loss: str = "huber"
+    f_scale_sigmas: float = 3.0
+    tag_iterations: int = 2
+    use_anchor_covariance: bool = True
+
+    def __post_init__(self) -> None:
+        self._choice("gauge", ("anchor0", "prior"))
+        self._choice("loss", ("linear", "huber", "soft_l1", "cauchy"))
+        self._positive("f_scale_sigmas")
+        self._integer("tag_iterations", 1, 100)
+
+
+@dataclass(frozen=True)
+class EnvConfig(ConfigBase):
+    """The calibration-scheduling task built on the simulator.
+
+    Reward per step (team reward, shared by all anchors), all terms documented in the env:
+    ``-(tag_error_weight * mean tag error [m] + anchor_error_weight * mean anchor error [m]
+    + calibration_time_weight * fraction of the step spent calibrating
+    + calibration_start_cost * [a round started this step])``.
+    """
+
+    sim: SimConfig = field(default_factory=SimConfig)
+    solver: SolverConfig = field(default_factory=SolverConfig)
+    max_cycles: int = 500
+    trigger: str = "any"
+    action_mode: str = "calibrate"
+    move_speed_mps: float = 0.4
+    move_headings: int = 8
+    tag_fallback: str = "hold"
+    residual_window_steps: int = 10
+    tag_error_weight: float = 1.0
+    anchor_error_weight: float = 0.0
+    calibration_time_weight: float = 0.1
+    calibration_start_cost: float = 0.0
+    error_cap_m: float = 10.0
+
+    def __post_init__(self) -> None:
+        self._integer("max_cycles", 1)
+        self._choice("trigger", TRIGGERS)
+        self._choice("action_mode", ACTION_MODES)
+        self._non_negative("move_speed_mps")
+        self._integer("move_headings", 1, 64)
+        self._choice("tag_fallback", TAG_FALLBACKS)
+        self._integer("residual_window_steps", 1, 10_000)
+        self._non_negative(
+            "tag_error_weight", "anchor_error_weight", "calibration_time_weight", "calibration_start_cost"
+        )
+        self._positive("error_cap_m")

@@ -61,6 +61,7 @@ def locate_tags(
     initial: np.ndarray | None = None,
     max_iterations: int = 10,
     tol_m: float = 1e-6,
+    with_covariance: bool = True,
 ) -> TagFixResult:
     """Locate T tags from their ranges to N anchors.
 
@@ -73,6 +74,7 @@ def locate_tags(
         initial: optional (T, dim) warm start (e.g. the previous fix); rows with NaN fall back
             to the closed form.
         max_iterations, tol_m: Gauss-Newton stopping rule (largest step below ``tol_m``).
+        with_covariance: compute covariance and GDOP (skip when tracking in a hot loop).
     """
     check_loss(loss)
     anchors = np.asarray(anchors, dtype=float)
@@ -90,15 +92,26 @@ def locate_tags(
     base_var = np.broadcast_to(np.asarray(range_std_m, dtype=float) ** 2, r.shape)
     base_iv = np.where(valid, 1.0 / base_var, 0.0)
 
-    p = _closed_form(anchors, r, base_iv * enough[:, None], dim)
+    warm = np.zeros(n_tags, dtype=bool)
     if initial is not None:
         init = np.asarray(initial, dtype=float)
         warm = np.isfinite(init).all(axis=1)
-        p = np.where(warm[:, None], init, p)
-    p = np.where(np.isfinite(p), p, 0.0)
+    if warm.all():
+        p = init.copy()
+    else:
+        p = _closed_form(anchors, r, base_iv * enough[:, None], dim)
+        if warm.any():
+            p = np.where(warm[:, None], init, p)
+        p = np.where(np.isfinite(p), p, 0.0)
 
-    iterations = 0
-    for iterations in range(1, max_iterations + 1):
+    if dim == 2:
+        p, iterations = _gauss_newton_2d(p, anchors, r, base_var, base_iv, valid, enough, anchor_covariance,
+                                         loss, f_scale, max_iterations, tol_m)
+        if not with_covariance:
+            return _light_result(p, anchors, r, valid, n_ranges, enough, iterations)
+        max_iterations = 0
+    iterations_general = 0
+    for iterations_general in range(1, max_iterations + 1):
         diff = p[:, None, :] - anchors[None, :, :]
         dist = np.sqrt((diff * diff).sum(-1))
         u = diff / np.maximum(dist, 1e-12)[..., None]
@@ -113,6 +126,8 @@ def locate_tags(
         p = p + step
         if np.abs(step).max() < tol_m:
             break
+    if dim != 2:
+        iterations = iterations_general
 
     diff = p[:, None, :] - anchors[None, :, :]
     dist = np.sqrt((diff * diff).sum(-1))
@@ -138,6 +153,58 @@ def locate_tags(
     positions = np.where(good[:, None], p, np.nan)
     rms = np.sqrt((res**2).sum(1) / np.maximum(n_ranges, 1))
     return TagFixResult(positions, cov, gdop, rms, n_ranges, status, iterations)
+
+
+def _gauss_newton_2d(p, anchors, r, base_var, base_iv, valid, enough, anchor_cov, loss, f_scale, iters, tol):
+    """Gauss-Newton for planar tags with the 2x2 normal equations written out (no einsum, no
+    batched LAPACK): the tracking hot path of the environment."""
+    ax, ay = anchors[:, 0], anchors[:, 1]
+    px, py = p[:, 0].copy(), p[:, 1].copy()
+    if anchor_cov is not None:
+        c00, c01, c11 = anchor_cov[:, 0, 0], anchor_cov[:, 0, 1], anchor_cov[:, 1, 1]
+    it = 0
+    for it in range(1, iters + 1):
+        dx, dy = px[:, None] - ax, py[:, None] - ay
+        dist = np.maximum(np.hypot(dx, dy), 1e-12)
+        ux, uy = dx / dist, dy / dist
+        if anchor_cov is None:
+            iv = base_iv
+        else:  # var_i = sigma^2 + u^T Sigma_a u
+            iv = np.where(valid, 1.0 / (base_var + ux * ux * c00 + 2 * ux * uy * c01 + uy * uy * c11), 0.0)
+        res = dist - r
+        w = iv if loss == "linear" else iv * irls_weights(res * np.sqrt(iv), loss, f_scale)
+        wx, wy = w * ux, w * uy
+        a, b, c = (wx * ux).sum(1), (wx * uy).sum(1), (wy * uy).sum(1)
+        gx, gy = (wx * res).sum(1), (wy * res).sum(1)
+        det = a * c - b * b
+        det = np.where(enough & (det > 1e-300), det, np.inf)
+        sx, sy = -(c * gx - b * gy) / det, -(a * gy - b * gx) / det
+        px, py = px + sx, py + sy
+        if max(np.abs(sx).max(), np.abs(sy).max()) < tol:
+            break
+    return np.column_stack([px, py]), it
+
+
+def _light_result(p, anchors, r, valid, n_ranges, enough, iterations):
+    """Fix, residual and status without covariance (degeneracy from the 2x2 determinant)."""
+    dx, dy = p[:, 0, None] - anchors[:, 0], p[:, 1, None] - anchors[:, 1]
+    dist = np.maximum(np.hypot(dx, dy), 1e-12)
+    ux, uy = dx / dist, dy / dist
+    vx, vy = ux * valid, uy * valid
+    a, b, c = (vx * ux).sum(1), (vx * uy).sum(1), (vy * uy).sum(1)
+    tr = a + c
+    disc = np.sqrt(np.maximum((a - c) ** 2 / 4 + b * b, 0.0))
+    degenerate = enough & (tr / 2 - disc <= 1e-8 * np.maximum(tr / 2 + disc, 1e-300))
+    status = np.full(len(p), OK)
+    status[~enough] = TOO_FEW_RANGES
+    status[degenerate] = DEGENERATE
+    status[(status == OK) & ~np.isfinite(p).all(1)] = NOT_CONVERGED
+    good = status == OK
+    res = np.where(valid, dist - r, 0.0)
+    rms = np.sqrt((res**2).sum(1) / np.maximum(n_ranges, 1))
+    nan = np.full((len(p), 2, 2), np.nan)
+    return TagFixResult(np.where(good[:, None], p, np.nan), nan, np.full(len(p), np.nan), rms, n_ranges, status,
+                        iterations)
 
 
 def _closed_form(anchors: np.ndarray, r: np.ndarray, iv: np.ndarray, dim: int) -> np.ndarray:

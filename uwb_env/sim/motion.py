@@ -100,6 +100,19 @@ class MotionModel:
         turn = np.abs((heading - old_heading + np.pi) % (2 * np.pi) - np.pi)
         return delta, turn
 
+    def command(self, rows: np.ndarray, headings_rad: np.ndarray, speeds_mps: np.ndarray) -> None:
+        """Override the scripted motion of robots ``rows``: steer to ``headings_rad`` at
+        ``speeds_mps`` (0 = stop). Heading noise still applies; used by learned anchor motion."""
+        self.headings[rows] = headings_rad
+        self.speeds[rows] = speeds_mps
+        self.waypoint_mask[rows] = False
+        self.pause_rate[rows] = 0.0
+        self.pause_left_s[rows] = 0.0
+        self._all_static = False
+        self._any_waypoint = bool(self.waypoint_mask.any())
+        self._any_pause_rate = bool((self.pause_rate > 0).any())
+        self._any_pauses = self._any_waypoint or self._any_pause_rate
+
     def _steer_to_waypoints(self, heading, step_len, rng):
         wp = self.waypoint_mask
         to_wp = self.waypoints - self.positions[:, :2].view(np.complex128)[:, 0]

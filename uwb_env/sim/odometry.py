@@ -64,3 +64,22 @@ class OdometryModel:
         out = delta.copy()
         out[:, :2] = est.view(np.float64).reshape(n, 2)
         return out
+
+    def expected_error_var_m2(self, distance_m: np.ndarray, steps: np.ndarray, dim: int = 2) -> np.ndarray:
+        """Nominal variance (summed over axes) of the drift accumulated since a reset of the
+        estimate, given the distance travelled and the steps taken: what a robot can predict
+        about its own error from its configuration (slip phases not included).
+
+        uniform: steps * dim * e^2 / 3. distance: white noise sigma_w^2 d, scale error
+        s^2 d^2, and the yaw random walk, whose integrated position effect is ~ sigma_y^2 d^3 / 3.
+        """
+        cfg = self.config
+        if self._uniform:
+            return steps * dim * cfg.uniform_error_m**2 / 3.0
+        d = np.asarray(distance_m, dtype=float)
+        return (
+            2 * cfg.noise_std_m_per_sqrt_m**2 * d
+            + cfg.scale_error_std**2 * d**2
+            + cfg.yaw_noise_std_rad_per_sqrt_m**2 * d**3 / 3.0
+        )
+

@@ -1,0 +1,224 @@
+"""PettingZoo ParallelEnv: anchor robots decide when the team calibrates.
+
+## Description
+N mobile anchor robots localize M tags by UWB ranging. Anchors know their own positions only
+from the embedded autocalibration solver (at calibration rounds) and their odometry (in
+between), which drifts. A calibration round re-estimates every anchor, but lasts several steps
+(the fitted DWM1001 timing: ~0.9 s for 4 anchors at K=5) during which the channel is busy and
+tags keep their last fix. The agents decide *when* to calibrate.
+
+## Agents
+``anchor_0`` ... ``anchor_{N-1}``; all act every step; nobody leaves before the episode ends.
+
+## Action space
+``calibrate`` mode (default): ``Discrete(2)``: 0 = no request, 1 = request a calibration. The
+``trigger`` rule turns requests into a round: ``any`` (default), ``majority`` or ``all``.
+Requests while a round runs are ignored and counted in ``infos["requests_ignored"]``.
+``calibrate_and_move`` mode: ``Discrete(2 * (H + 1))``: ``a // (H + 1)`` is the request bit,
+``a % (H + 1)`` picks one of H headings (at ``move_speed_mps``) or H = stop; this replaces
+the scripted motion of the anchors.
+
+## Observation space
+``Box(low, high, (dim + 8,), float32)`` per anchor, clipped into the declared bounds:
+
+| index | meaning | unit |
+| --- | --- | --- |
+| 0..dim-1 | the anchor's estimated position (localization frame) | m |
+| dim | time since the last calibration | s |
+| dim+1 | predicted position std (calibration covariance + drift model of the odometry) | m |
+| dim+2 | position std from the last calibration's covariance | m |
+| dim+3 | RMS residual of the last calibration | m |
+| dim+4 | mean RMS residual of the tag fixes over the last ``residual_window_steps`` | m |
+| dim+5 | this anchor's mean absolute range residual in those tag fixes | m |
+| dim+6 | 1 while a calibration round runs | - |
+| dim+7 | progress of the running round | 0..1 |
+
+## Rewards
+One team reward, the same for every anchor:
+``-(tag_error_weight * mean tag error + anchor_error_weight * mean anchor error
++ calibration_time_weight * fraction of the step spent calibrating
++ calibration_start_cost * [round started])``. Errors are in metres, measured after the rigid
+alignment of the true anchors onto their estimates (range-only calibration cannot observe
+the drift of the whole frame, and the paper measures positions relative to the anchors);
+``infos`` also carry the fixed-frame errors and the paper's rotation error. Each term is in
+``infos[agent]["reward_terms"]``.
+
+## Starting state
+Anchors near the corners of the area, tags inside their polygon; a first calibration (the
+paper's rules) runs during ``reset`` and defines the localization frame.
+
+## Episode end
+Truncation after ``max_cycles`` steps. There is no terminal state (termination stays False).
+
+## Arguments
+``uwb_env.parallel_env(config=None, render_mode=None, **overrides)``: ``config`` an
+:class:`~uwb_env.config.EnvConfig` or dict; keyword overrides merge into it (unknown keys
+raise :class:`~uwb_env.config.ConfigError`).
+
+## Version history
+v0: initial release.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from gymnasium import spaces
+from gymnasium.utils import EzPickle, seeding
+from pettingzoo import ParallelEnv
+
+from uwb_env.config import EnvConfig
+from uwb_env.system import LocalizationSystem
+
+
+def make_config(config: EnvConfig | dict | None, overrides: dict[str, Any]) -> EnvConfig:
+    if config is None:
+        config = EnvConfig()
+    elif isinstance(config, dict):
+        config = EnvConfig.from_dict(config)
+    elif not isinstance(config, EnvConfig):
+        raise TypeError(f"config={config!r}: expected EnvConfig, dict or None")
+    return config.replace(**overrides) if overrides else config
+
+
+class UWBCalibrationParallelEnv(ParallelEnv, EzPickle):
+    """See the module docstring for spaces, reward, termination and arguments."""
+
+    metadata = {"render_modes": ["human", "rgb_array"], "name": "uwb_calibration_v0", "is_parallelizable": True,
+                "render_fps": 10}
+
+    def __init__(self, config: EnvConfig | dict | None = None, render_mode: str | None = None, **overrides: Any):
+        EzPickle.__init__(self, config, render_mode, **overrides)
+        self.config = make_config(config, overrides)
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode={render_mode!r}: must be one of {self.metadata['render_modes']}")
+        self.render_mode = render_mode
+        self.system = LocalizationSystem(self.config)
+        n = self.config.sim.n_anchors
+        self.possible_agents = [f"anchor_{i}" for i in range(n)]
+        self.agents: list[str] = []
+        low, high = self.system.feature_bounds()
+        obs_space = spaces.Box(low, high, dtype=np.float32)
+        heads = self.config.move_headings
+        n_actions = 2 if self.config.action_mode == "calibrate" else 2 * (heads + 1)
+        act_space = spaces.Discrete(n_actions)
+        self.observation_spaces = {a: obs_space for a in self.possible_agents}
+        self.action_spaces = {a: act_space for a in self.possible_agents}
+        self._heading_table = np.linspace(-np.pi, np.pi, heads, endpoint=False)
+        self.np_random, _ = seeding.np_random(None)
+        self._renderer = None
+        self.history: dict[str, list[float]] = {}
+
+    def observation_space(self, agent: str) -> spaces.Space:
+        return self.observation_spaces[agent]
+
+    def action_space(self, agent: str) -> spaces.Space:
+        return self.action_spaces[agent]
+
+    # -- API ------------------------------------------------------------------------------------
+    def reset(self, seed: int | None = None, options: dict | None = None):
+        if seed is not None:
+            self.np_random, _ = seeding.np_random(seed)
+        self.system.reset(self.np_random)
+        self.agents = list(self.possible_agents)
+        self.num_steps = 0
+        self.history = {"tag_error_m": [], "anchor_error_m": [], "calibrating": []}
+        self._record(0.0)
+        report = None
+        return self._observations(), self._infos(report, {})
+
+    def step(self, actions: dict[str, Any]):
+        if not self.agents:
+            raise RuntimeError("step() called on a finished episode: call reset() first")
+        requests, moves = self._decode(actions)
+        report = self.system.step(requests, moves)
+        self.num_steps += 1
+        terms = self.system.reward_terms(report)
+        reward = float(sum(terms.values()))
+        truncated = self.num_steps >= self.config.max_cycles
+        obs = self._observations()
+        infos = self._infos(report, terms)
+        rewards = {a: reward for a in self.agents}
+        terminations = {a: False for a in self.agents}
+        truncations = {a: truncated for a in self.agents}
+        self._record(report.calibrating_fraction)
+        if truncated:
+            self.agents = []
+        if self.render_mode == "human":
+            self.render()
+        return obs, rewards, terminations, truncations, infos
+
+    def render(self):
+        if self.render_mode is None:
+            return None
+        if self._renderer is None:
+            from uwb_env.env.render import Renderer
+
+            self._renderer = Renderer(self.config, self.render_mode)
+        return self._renderer.draw(self.system, self.history)
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+    # -- helpers --------------------------------------------------------------------------------
+    def _decode(self, actions: dict[str, Any]):
+        n = len(self.possible_agents)
+        missing = [a for a in self.agents if a not in actions]
+        if missing:
+            raise KeyError(f"actions: missing entries for agents {missing}")
+        values = np.empty(n, dtype=np.int64)
+        space = self.action_spaces[self.possible_agents[0]]
+        for i, agent in enumerate(self.possible_agents):
+            act = actions[agent]
+            try:
+                ok = space.contains(np.int64(act))
+            except (TypeError, ValueError):
+                ok = False
+            if not ok:
+                raise ValueError(f"actions[{agent!r}]={act!r}: not in {space}")
+            values[i] = int(act)
+        if self.config.action_mode == "calibrate":
+            return values == 1, None
+        per = self.config.move_headings + 1
+        requests, move = values // per == 1, values % per
+        stop = move == self.config.move_headings
+        heading = self._heading_table[np.minimum(move, self.config.move_headings - 1)]
+        speed = np.where(stop, 0.0, self.config.move_speed_mps)
+        return requests, np.column_stack([heading, speed])
+
+    def _observations(self) -> dict[str, np.ndarray]:
+        feats = self.system.anchor_features()
+        return {a: feats[i] for i, a in enumerate(self.agents)}
+
+    def _infos(self, report, terms) -> dict[str, dict]:
+        s = self.system
+        anchor_err = s.anchor_errors_m()
+        tag_err = s.tag_errors_m()
+        shared = {
+            "mean_tag_error_m": float(tag_err.mean()) if len(tag_err) else 0.0,
+            "mean_anchor_error_m": float(anchor_err.mean()),
+            "mean_tag_error_fixed_frame_m": float(s.tag_errors_m("fixed").mean()) if len(tag_err) else 0.0,
+            "mean_anchor_error_fixed_frame_m": float(s.anchor_errors_m("fixed").mean()),
+            "rotation_error_rad": s.rotation_error_rad(),
+            "tag_errors_m": tag_err,
+            "calibration_count": s.calibration_count,
+            "time_calibrating_s": s.time_calibrating_s,
+            "time_s": s.world.time_s,
+            "calibrating": s.world.round is not None,
+            "round_started": bool(report.round_started) if report else False,
+            "round_finished": bool(report.round_finished) if report else False,
+            "calibration_failed": report.calibration_failed if report else None,
+            "requests_ignored": report.requests_ignored if report else 0,
+            "reward_terms": terms,
+        }
+        return {a: {**shared, "anchor_error_m": float(anchor_err[i])} for i, a in enumerate(self.agents)}
+
+    def _record(self, calibrating_fraction: float) -> None:
+        if self.render_mode is None:  # traces exist only for rendering: no cost otherwise
+            return
+        self.history["tag_error_m"].append(float(self.system.tag_errors_m().mean()) if self.system.n_tags else 0.0)
+        self.history["anchor_error_m"].append(float(self.system.anchor_errors_m().mean()))
+        self.history["calibrating"].append(calibrating_fraction)

@@ -1,0 +1,314 @@
+"""The localization system the environments wrap: simulator + calibration rounds + solver.
+
+Free of RL APIs (the PettingZoo and Gymnasium envs are thin adapters over this class).
+
+Anchors know their positions only through the embedded solver (at calibrations) and their
+odometry (between calibrations); tags are fixed every step from their ranges to the
+*estimated* anchor positions. Ground truth is used only for the error metrics.
+
+Frame: the first calibration (run during :meth:`reset`, paper rules) defines the localization
+frame; the simulator's estimate frame is set to the rigid transform that best maps the true
+anchor positions onto that solution, so errors are measured where users see positions.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from uwb_env.config import EnvConfig
+from uwb_env.localization import LocalizationError, calibrate_anchors, locate_tags, rigid_align
+from uwb_env.measurements import RangeMatrix
+from uwb_env.sim import RangeModel, World
+
+OBS_FIELDS = (
+    "time_since_calibration_s",
+    "predicted_position_std_m",
+    "calibration_position_std_m",
+    "last_calibration_rms_residual_m",
+    "tag_fix_rms_residual_m",
+    "own_range_residual_m",
+    "calibrating",
+    "round_progress",
+)
+
+
+@dataclass
+class StepReport:
+    """What happened in one step (ground-truth metrics included)."""
+
+    round_started: bool
+    round_finished: bool
+    requests_ignored: int
+    calibrating_fraction: float
+    calibration_failed: str | None = None
+
+
+class LocalizationSystem:
+    """Anchors, tags, calibration rounds and the embedded solver, stepped together.
+
+    Args:
+        config: the environment configuration (its ``sim`` part configures the world).
+    """
+
+    def __init__(self, config: EnvConfig | None = None, range_model: RangeModel | None = None):
+        self.config = config or EnvConfig()
+        self.world = World(self.config.sim, range_model)
+        self.range_model = self.world.range_model
+        self.n_anchors = self.config.sim.n_anchors
+        self.n_tags = self.config.sim.n_tags
+        self.dim = self.config.sim.dim
+        self.range_std_m = self.range_model.corrected_noise_std_m
+        self.obs_size = self.dim + len(OBS_FIELDS)
+
+    # -- lifecycle -----------------------------------------------------------------------------
+    def reset(self, rng: np.random.Generator) -> None:
+        """New episode: place robots, run the first calibration (paper rules), fix tags."""
+        cfg = self.config
+        n, m, dim = self.n_anchors, self.n_tags, self.dim
+        self.world.reset(rng)
+        self.calibration_count = 0
+        self.time_calibrating_s = 0.0
+        self.time_since_calibration_s = np.zeros(n)
+        self.distance_since_calibration_m = np.zeros(n)
+        self.steps_since_calibration = np.zeros(n)
+        self.calibration_var_m2 = np.zeros(n)
+        self.anchor_cov = np.zeros((n, dim, dim))
+        self.last_calibration_rms_m = 0.0
+        self.tag_fix = np.full((m, dim), np.nan)
+        self.tag_velocity = np.zeros((m, dim))
+        self.tag_fix_age_s = np.zeros(m)
+        w = cfg.residual_window_steps
+        self._tag_residual_hist = np.zeros(w)
+        self._anchor_residual_hist = np.zeros((w, n))
+        self._hist_index = 0
+        self.last_round_links: np.ndarray | None = None
+        true_start, est_start = self.world.anchors_true.copy(), self.world.anchors_est.copy()
+        matrix = self._run_round_blocking()
+        result = calibrate_anchors(
+            self._corrected(matrix), dim=dim, loss=cfg.solver.loss, f_scale=cfg.solver.f_scale_sigmas,
+            range_std_m=self.range_std_m,
+        )
+        # The solution describes the robots around the round's midpoint; the solver's frame
+        # becomes the estimate frame: est = R (world - origin).
+        true_mid = 0.5 * (true_start + self.world.anchors_true)
+        rot, trans = rigid_align(true_mid, result.positions)
+        self.world.set_estimate_frame(rot, -rot.T @ trans)
+        odometry_since_mid = (self.world.anchors_est - 0.5 * (est_start + self.world.anchors_est)) @ rot.T
+        self._apply_calibration(result, odometry_since_mid)
+        self._fix_tags()
+
+    def step(self, requests: np.ndarray, move_commands: np.ndarray | None = None) -> StepReport:
+        """Advance one ``dt_s``.
+
+        Args:
+            requests: (n_anchors,) bool, each anchor's calibration request.
+            move_commands: optional (n_anchors, 2) [heading_rad, speed_mps] overrides.
+        """
+        world, dt = self.world, self.world.dt_s
+        if move_commands is not None:
+            self.world.motion.command(np.arange(self.n_anchors), move_commands[:, 0], move_commands[:, 1])
+        running = world.round is not None
+        ignored = int(np.count_nonzero(requests)) if running else 0
+        started = (not running) and self._triggered(requests)
+        if started:
+            world.start_calibration_round()
+            self._est_at_round_start = world.anchors_est.copy()
+        t0 = world.time_s
+        before = world.anchors_est.copy()
+        world.step()
+        moved = np.linalg.norm(world.anchors_est - before, axis=1)
+        self.distance_since_calibration_m += moved
+        self.steps_since_calibration += 1
+        self.time_since_calibration_s += dt
+        report = StepReport(started, False, ignored, 0.0)
+        if world.round is not None:
+            rnd = world.round
+            busy_until = min(rnd.end_time_s, world.time_s)
+            report.calibrating_fraction = (busy_until - max(rnd.start_time_s, t0)) / dt
+            self.time_calibrating_s += report.calibrating_fraction * dt
+            self.last_round_links = np.column_stack([rnd.initiator, rnd.responder])
+            if rnd.done:
+                report.round_finished = True
+                report.calibration_failed = self._finish_round()
+            self._hold_tags(dt)
+        else:
+            self.last_round_links = None
+            self._fix_tags()
+        return report
+
+    # -- calibration -----------------------------------------------------------------------------
+    def _triggered(self, requests: np.ndarray) -> bool:
+        k = int(np.count_nonzero(requests))
+        rule = self.config.trigger
+        if rule == "any":
+            return k >= 1
+        if rule == "majority":
+            return k > self.n_anchors / 2
+        return k == self.n_anchors
+
+    def _run_round_blocking(self) -> RangeMatrix:
+        self.world.start_calibration_round()
+        while not self.world.round.done:
+            self.world.step()
+        return self.world.finish_calibration_round().result()
+
+    def _corrected(self, matrix: RangeMatrix) -> RangeMatrix:
+        return RangeMatrix(self.range_model.correct(matrix.mean_m), self.range_model.correct_std(matrix.std_m),
+                           matrix.count)
+
+    def _finish_round(self) -> str | None:
+        matrix = self.world.finish_calibration_round().result()
+        solver = self.config.solver
+        # Motion compensation: the ranges were taken while the robots moved, so the solution
+        # describes them around the round's midpoint. Solve against the mid-round estimates and
+        # carry the result to now with the odometry accumulated since then.
+        est_mid = 0.5 * (self._est_at_round_start + self.world.anchors_est)
+        try:
+            result = calibrate_anchors(
+                self._corrected(matrix), dim=self.dim, prior=est_mid, gauge=solver.gauge,
+                loss=solver.loss, f_scale=solver.f_scale_sigmas, range_std_m=self.range_std_m,
+            )
+        except LocalizationError as err:  # e.g. dropouts disconnected the graph: keep odometry
+            return f"{type(err).__name__}: {err}"
+        self._apply_calibration(result, self.world.anchors_est - est_mid)
+        return None
+
+    def _apply_calibration(self, result, odometry_since_mid: np.ndarray) -> None:
+        self.world.anchors_est = result.positions + odometry_since_mid
+        self.anchor_cov = result.anchor_covariance()
+        self.calibration_var_m2 = np.trace(self.anchor_cov, axis1=1, axis2=2)
+        self.last_calibration_rms_m = result.rms_residual_m
+        self.calibration_count += 1
+        self.time_since_calibration_s[:] = 0.0
+        self.distance_since_calibration_m[:] = 0.0
+        self.steps_since_calibration[:] = 0
+
+    # -- tags ------------------------------------------------------------------------------------
+    def predicted_anchor_var_m2(self) -> np.ndarray:
+        """Each anchor's predicted position error variance: calibration + drift model."""
+        drift = self.world.odometry.expected_error_var_m2(
+            self.distance_since_calibration_m, self.steps_since_calibration, self.dim
+        )
+        return self.calibration_var_m2 + drift
+
+    def _fix_tags(self) -> None:
+        if self.n_tags == 0:
+            return
+        raw = self.world.measure_tag_ranges().T  # (tags, anchors)
+        # Noise can push a corrected range below zero next to an anchor: a valid reading of ~0.
+        ranges = np.maximum(self.range_model.correct(raw), 0.0)
+        solver = self.config.solver
+        cov = None
+        if solver.use_anchor_covariance:
+            cov = self.anchor_cov + (self.predicted_anchor_var_m2() - self.calibration_var_m2)[:, None, None] / self.dim * np.eye(self.dim)
+        fix = locate_tags(
+            self.world.anchors_est, ranges, self.range_std_m, anchor_covariance=cov, loss=solver.loss,
+            f_scale=solver.f_scale_sigmas, initial=self.tag_fix, max_iterations=solver.tag_iterations,
+            with_covariance=False,
+        )
+        ok = fix.ok
+        dt = self.world.dt_s
+        new = np.where(ok[:, None], fix.positions, self.tag_fix)
+        had = np.isfinite(self.tag_fix).all(1) & ok
+        self.tag_velocity = np.where(had[:, None], (new - np.nan_to_num(self.tag_fix)) / np.maximum(self.tag_fix_age_s + dt, dt)[:, None], self.tag_velocity)
+        self.tag_fix = new
+        self.tag_fix_age_s = np.where(ok, 0.0, self.tag_fix_age_s + dt)
+        # Residual statistics: what a deployed system can see that its anchors went stale.
+        predicted = np.linalg.norm(fix.positions[:, None, :] - self.world.anchors_est[None], axis=-1)
+        per_anchor = np.abs(predicted - ranges)
+        per_anchor = np.where(np.isfinite(per_anchor) & ok[:, None], per_anchor, np.nan)
+        i = self._hist_index % self.config.residual_window_steps
+        with np.errstate(invalid="ignore"):
+            tag_rms = fix.residual_rms_m[ok]
+            self._tag_residual_hist[i] = float(tag_rms.mean()) if tag_rms.size else self._tag_residual_hist[i - 1]
+            anchor_res = np.nanmean(per_anchor, axis=0) if ok.any() else self._anchor_residual_hist[i - 1]
+        self._anchor_residual_hist[i] = np.where(np.isfinite(anchor_res), anchor_res, 0.0)
+        self._hist_index += 1
+
+    def _hold_tags(self, dt: float) -> None:
+        self.tag_fix_age_s += dt
+        if self.config.tag_fallback == "predict":
+            self.tag_fix = self.tag_fix + self.tag_velocity * dt
+
+    # -- features and metrics ----------------------------------------------------------------------
+    def anchor_features(self) -> np.ndarray:
+        """(n_anchors, dim + len(OBS_FIELDS)) float32 features, clipped to the declared bounds."""
+        world = self.world
+        n = self.n_anchors
+        filled = min(self._hist_index, self.config.residual_window_steps)
+        tag_res = self._tag_residual_hist[:filled].mean() if filled else 0.0
+        own_res = self._anchor_residual_hist[:filled].mean(0) if filled else np.zeros(n)
+        rnd = world.round
+        feats = np.empty((n, self.obs_size), dtype=np.float32)
+        feats[:, : self.dim] = world.anchors_est
+        feats[:, self.dim] = self.time_since_calibration_s
+        feats[:, self.dim + 1] = np.sqrt(self.predicted_anchor_var_m2())
+        feats[:, self.dim + 2] = np.sqrt(self.calibration_var_m2)
+        feats[:, self.dim + 3] = self.last_calibration_rms_m
+        feats[:, self.dim + 4] = tag_res
+        feats[:, self.dim + 5] = own_res
+        feats[:, self.dim + 6] = float(rnd is not None)
+        feats[:, self.dim + 7] = rnd.progress if rnd is not None else 0.0
+        low, high = self.feature_bounds()
+        return np.clip(feats, low, high)
+
+    def feature_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        size, cap = self.config.sim.area_size_m, self.config.error_cap_m
+        t_max = self.config.max_cycles * self.config.sim.dt_s + 60.0
+        pos_lo = [-size - cap] * self.dim
+        pos_hi = [2 * size + cap] * self.dim
+        low = np.array(pos_lo + [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], dtype=np.float32)
+        high = np.array(pos_hi + [t_max, cap, cap, cap, cap, cap, 1.0, 1.0], dtype=np.float32)
+        return low, high
+
+    def _constellation_transform(self) -> tuple[np.ndarray, np.ndarray]:
+        # Range-only calibration restores the constellation's shape, not where the frame has
+        # drifted or turned (both unobservable from ranges). The paper measures positions
+        # relative to the anchors, so errors are taken after the rigid transform (rotation +
+        # translation) that best maps the true anchors onto their estimates; rotation_error_rad
+        # and the "fixed" frame report the frame drift separately. Cached per step.
+        key = self.world.step_count
+        if getattr(self, "_transform_key", None) != key:
+            truth = self.world.to_estimate_frame(self.world.anchors_true)
+            self._transform = rigid_align(truth, self.world.anchors_est, allow_reflection=False)
+            self._transform_key = key
+        return self._transform
+
+    def _truth(self, points_world: np.ndarray, frame: str) -> np.ndarray:
+        truth = self.world.to_estimate_frame(points_world)
+        if frame == "constellation":
+            rot, trans = self._constellation_transform()
+            return truth @ rot.T + trans
+        if frame != "fixed":
+            raise ValueError(f"frame={frame!r}: must be 'constellation' or 'fixed'")
+        return truth
+
+    def anchor_errors_m(self, frame: str = "constellation") -> np.ndarray:
+        """Per-anchor error; ``constellation`` (after rigid alignment) or ``fixed`` (first-calibration frame)."""
+        return np.linalg.norm(self.world.anchors_est - self._truth(self.world.anchors_true, frame), axis=1)
+
+    def tag_errors_m(self, frame: str = "constellation") -> np.ndarray:
+        """Per-tag error of the current fix (held fixes keep aging); capped at ``error_cap_m``."""
+        err = np.linalg.norm(self.tag_fix - self._truth(self.world.tags_true, frame), axis=1)
+        return np.minimum(np.where(np.isfinite(err), err, self.config.error_cap_m), self.config.error_cap_m)
+
+    def rotation_error_rad(self) -> float:
+        """Paper Fig. 5: angle between the estimated and true direction anchor 0 -> anchor 1
+        (in the fixed frame of the first calibration)."""
+        truth = self.world.to_estimate_frame(self.world.anchors_true[:2])
+        est = self.world.anchors_est[:2]
+        a, b = est[1] - est[0], truth[1] - truth[0]
+        return float(abs(np.arctan2(a[0] * b[1] - a[1] * b[0], a @ b)))
+
+    def reward_terms(self, report: StepReport) -> dict[str, float]:
+        cfg = self.config
+        tag = float(self.tag_errors_m().mean()) if self.n_tags else 0.0
+        anchor = float(np.minimum(self.anchor_errors_m(), cfg.error_cap_m).mean())
+        return {
+            "tag_error": -cfg.tag_error_weight * tag,
+            "anchor_error": -cfg.anchor_error_weight * anchor,
+            "calibration_time": -cfg.calibration_time_weight * report.calibrating_fraction,
+            "calibration_start": -cfg.calibration_start_cost * float(report.round_started),
+        }
