@@ -202,7 +202,8 @@ class LocalizationSystem:
         solver = self.config.solver
         cov = None
         if solver.use_anchor_covariance:
-            cov = self.anchor_cov + (self.predicted_anchor_var_m2() - self.calibration_var_m2)[:, None, None] / self.dim * np.eye(self.dim)
+            drift_var = self.predicted_anchor_var_m2() - self.calibration_var_m2  # isotropic drift part
+            cov = self.anchor_cov + (drift_var / self.dim)[:, None, None] * np.eye(self.dim)
         fix = locate_tags(
             self.world.anchors_est, ranges, self.range_std_m, anchor_covariance=cov, loss=solver.loss,
             f_scale=solver.f_scale_sigmas, initial=self.tag_fix, max_iterations=solver.tag_iterations,
@@ -212,7 +213,8 @@ class LocalizationSystem:
         dt = self.world.dt_s
         new = np.where(ok[:, None], fix.positions, self.tag_fix)
         had = np.isfinite(self.tag_fix).all(1) & ok
-        self.tag_velocity = np.where(had[:, None], (new - np.nan_to_num(self.tag_fix)) / np.maximum(self.tag_fix_age_s + dt, dt)[:, None], self.tag_velocity)
+        elapsed = np.maximum(self.tag_fix_age_s + dt, dt)[:, None]
+        self.tag_velocity = np.where(had[:, None], (new - np.nan_to_num(self.tag_fix)) / elapsed, self.tag_velocity)
         self.tag_fix = new
         self.tag_fix_age_s = np.where(ok, 0.0, self.tag_fix_age_s + dt)
         # Residual statistics: what a deployed system can see that its anchors went stale.
@@ -220,11 +222,14 @@ class LocalizationSystem:
         per_anchor = np.abs(predicted - ranges)
         per_anchor = np.where(np.isfinite(per_anchor) & ok[:, None], per_anchor, np.nan)
         i = self._hist_index % self.config.residual_window_steps
-        with np.errstate(invalid="ignore"):
-            tag_rms = fix.residual_rms_m[ok]
-            self._tag_residual_hist[i] = float(tag_rms.mean()) if tag_rms.size else self._tag_residual_hist[i - 1]
-            anchor_res = np.nanmean(per_anchor, axis=0) if ok.any() else self._anchor_residual_hist[i - 1]
-        self._anchor_residual_hist[i] = np.where(np.isfinite(anchor_res), anchor_res, 0.0)
+        if ok.any():
+            self._tag_residual_hist[i] = fix.residual_rms_m[ok].mean()
+            seen = np.isfinite(per_anchor)
+            counts = seen.sum(0)
+            self._anchor_residual_hist[i] = np.where(seen, per_anchor, 0.0).sum(0) / np.maximum(counts, 1)
+        else:  # no usable fix this step: carry the previous statistics
+            self._tag_residual_hist[i] = self._tag_residual_hist[i - 1]
+            self._anchor_residual_hist[i] = self._anchor_residual_hist[i - 1]
         self._hist_index += 1
 
     def _hold_tags(self, dt: float) -> None:
@@ -287,12 +292,25 @@ class LocalizationSystem:
 
     def anchor_errors_m(self, frame: str = "constellation") -> np.ndarray:
         """Per-anchor error; ``constellation`` (after rigid alignment) or ``fixed`` (first-calibration frame)."""
-        return np.linalg.norm(self.world.anchors_est - self._truth(self.world.anchors_true, frame), axis=1)
+        return self._cached(("anchor", frame), lambda: np.linalg.norm(
+            self.world.anchors_est - self._truth(self.world.anchors_true, frame), axis=1))
 
     def tag_errors_m(self, frame: str = "constellation") -> np.ndarray:
         """Per-tag error of the current fix (held fixes keep aging); capped at ``error_cap_m``."""
-        err = np.linalg.norm(self.tag_fix - self._truth(self.world.tags_true, frame), axis=1)
-        return np.minimum(np.where(np.isfinite(err), err, self.config.error_cap_m), self.config.error_cap_m)
+        def compute():
+            err = np.linalg.norm(self.tag_fix - self._truth(self.world.tags_true, frame), axis=1)
+            return np.minimum(np.where(np.isfinite(err), err, self.config.error_cap_m), self.config.error_cap_m)
+
+        return self._cached(("tag", frame), compute)
+
+    def _cached(self, key, compute):
+        # Metrics are read several times per step (reward, infos): compute each once per step.
+        stamp = (self.world.step_count, self.calibration_count)
+        if getattr(self, "_cache_stamp", None) != stamp:
+            self._cache_stamp, self._cache = stamp, {}
+        if key not in self._cache:
+            self._cache[key] = compute()
+        return self._cache[key]
 
     def rotation_error_rad(self) -> float:
         """Paper Fig. 5: angle between the estimated and true direction anchor 0 -> anchor 1

@@ -173,13 +173,11 @@ class UWBCalibrationParallelEnv(ParallelEnv, EzPickle):
         space = self.action_spaces[self.possible_agents[0]]
         for i, agent in enumerate(self.possible_agents):
             act = actions[agent]
-            try:
-                ok = space.contains(np.int64(act))
-            except (TypeError, ValueError):
-                ok = False
-            if not ok:
+            if isinstance(act, np.ndarray) and act.shape == ():
+                act = act.item()
+            if isinstance(act, bool) or not isinstance(act, (int, np.integer)) or not 0 <= act < space.n:
                 raise ValueError(f"actions[{agent!r}]={act!r}: not in {space}")
-            values[i] = int(act)
+            values[i] = act
         if self.config.action_mode == "calibrate":
             return values == 1, None
         per = self.config.move_headings + 1

@@ -1,0 +1,90 @@
+"""ParallelEnv throughput and the cost of a step that completes a calibration.
+
+Env steps/s for 4 anchors / 3 tags without calibrations (target >= 5,000 on one core), set
+beside the bare simulator step (motion + odometry + ranging, no localization) measured in the
+same run, as a ratio; and the wall time of the step that finishes a round (solver included)
+for N = 4, 8, 16 anchors. Writes benchmarks/results/bench_env.json.
+
+    python benchmarks/bench_env.py [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import print_table, rate, write_results  # noqa: E402
+
+import uwb_env  # noqa: E402
+from uwb_env.sim import World  # noqa: E402
+
+
+def env_rate(seconds: float, **kwargs) -> float:
+    env = uwb_env.parallel_env(max_cycles=10**9, **kwargs)
+    env.reset(seed=0)
+    idle = {a: 0 for a in env.agents}
+    return rate(lambda: env.step(idle), seconds, batch=200)
+
+
+def sim_rate(seconds: float) -> float:
+    world = World()
+    world.reset(np.random.default_rng(0))
+
+    def step():
+        world.step()
+        world.measure_tag_ranges()
+
+    return rate(step, seconds, batch=500)
+
+
+def calibration_step_ms(n_anchors: int, repeats: int) -> float:
+    env = uwb_env.parallel_env(max_cycles=10**9, sim={"n_anchors": n_anchors})
+    env.reset(seed=1)
+    idle = {a: 0 for a in env.agents}
+    request = {a: 1 for a in env.agents}
+    times = []
+    for _ in range(repeats):
+        env.step(request)
+        while True:
+            t = time.perf_counter()
+            _, _, _, _, infos = env.step(idle)
+            dt = time.perf_counter() - t
+            if infos["anchor_0"]["round_finished"]:
+                times.append(dt)
+                break
+    return 1e3 * float(np.median(times))
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true")
+    args = parser.parse_args(argv)
+    seconds = 0.5 if args.quick else 3.0
+    repeats = 5 if args.quick else 30
+    fig = {"env_steps_per_s": env_rate(seconds), "sim_steps_per_s": sim_rate(seconds)}
+    fig["env_over_sim_ratio"] = fig["env_steps_per_s"] / fig["sim_steps_per_s"]
+    fig["env_steps_per_s_no_tags"] = env_rate(seconds, sim={"n_tags": 0})
+    print_table("Env steps/s, 4 anchors / 3 tags, no calibration (target >= 5,000)",
+                ["what", "steps/s", "ratio to bare simulator"],
+                [["ParallelEnv.step (localization + metrics + obs)", fig["env_steps_per_s"], fig["env_over_sim_ratio"]],
+                 ["ParallelEnv.step without tags", fig["env_steps_per_s_no_tags"],
+                  fig["env_steps_per_s_no_tags"] / fig["sim_steps_per_s"]],
+                 ["reference: bare simulator step", fig["sim_steps_per_s"], 1.0]])
+    rows = []
+    for n in (4, 8, 16):
+        ms = calibration_step_ms(n, repeats)
+        fig[f"calibration_step_ms_n{n}"] = ms
+        rows.append([n, ms, ms * fig["env_steps_per_s"] / 1e3])
+    print_table("Step that completes a calibration (solver included)",
+                ["anchors", "ms", "x an ordinary step"], rows)
+    write_results("bench_env", fig, args.quick)
+    return fig
+
+
+if __name__ == "__main__":
+    main()
