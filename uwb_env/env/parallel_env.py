@@ -206,6 +206,7 @@ class UWBCalibrationParallelEnv(ParallelEnv, EzPickle):
             "time_calibrating_s": s.time_calibrating_s,
             "time_s": s.world.time_s,
             "calibrating": s.world.round is not None,
+            "calibrating_fraction": float(report.calibrating_fraction) if report else 0.0,
             "round_started": bool(report.round_started) if report else False,
             "round_finished": bool(report.round_finished) if report else False,
             "calibration_failed": report.calibration_failed if report else None,

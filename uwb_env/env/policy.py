@@ -34,7 +34,7 @@ class RolloutResult:
 
     tag_error_m: np.ndarray
     anchor_error_m: np.ndarray
-    calibrating: np.ndarray
+    calibrating: np.ndarray  # fraction of each step the channel was busy calibrating
     reward: np.ndarray
     round_started: np.ndarray
     calibration_count: int
@@ -69,7 +69,7 @@ def rollout(env, policy: CalibrationPolicy, seed: int | None = None, max_steps: 
         actions = policy.act(obs, infos)
         obs, rewards, _, _, infos = env.step(actions)
         info = next(iter(infos.values()))
-        rows.append((info["mean_tag_error_m"], info["mean_anchor_error_m"], float(info["calibrating"]),
+        rows.append((info["mean_tag_error_m"], info["mean_anchor_error_m"], info["calibrating_fraction"],
                      next(iter(rewards.values()))))
         started.append(info["round_started"])
         steps += 1
