@@ -22,6 +22,21 @@ def _all(observations: dict[str, np.ndarray], request: bool) -> dict[str, int]:
     return {agent: int(request) for agent in observations}
 
 
+def _positive(name: str, value: float) -> float:
+    if not value > 0:
+        raise ValueError(f"{name}={value!r}: must be > 0")
+    return value
+
+
+class _Stateless:
+    """Shared defaults: observation-only and nothing to reset."""
+
+    uses_ground_truth = False
+
+    def reset(self, seed: int | None = None) -> None:
+        pass
+
+
 class FixedIntervalPolicy:
     """The paper's baseline: calibrate every ``interval_steps`` steps (or ``interval_s``).
 
@@ -49,60 +64,36 @@ class FixedIntervalPolicy:
         return _all(observations, self.t % self.interval_steps == 0)
 
 
-class UncertaintyThresholdPolicy:
+class UncertaintyThresholdPolicy(_Stateless):
     """Calibrate when any anchor's predicted position std exceeds ``threshold_m`` (the
     paper's "whenever the inter-calibration positioning error at the anchors exceeds a
     certain error threshold", with the error predicted from the drift model)."""
 
-    uses_ground_truth = False
-
     def __init__(self, threshold_m: float = 0.15):
-        if not threshold_m > 0:
-            raise ValueError(f"threshold_m={threshold_m!r}: must be > 0")
-        self.threshold_m = threshold_m
-
-    def reset(self, seed: int | None = None) -> None:
-        pass
+        self.threshold_m = _positive("threshold_m", threshold_m)
 
     def act(self, observations, infos):
         return _all(observations, bool((_field(observations, "predicted_position_std_m") > self.threshold_m).any()))
 
 
-class ResidualTriggerPolicy:
+class ResidualTriggerPolicy(_Stateless):
     """Calibrate when the tag fixes' residuals show stale anchors: the windowed mean RMS
     tag-fix residual exceeds ``threshold_m``."""
 
-    uses_ground_truth = False
-
     def __init__(self, threshold_m: float = 0.12):
-        if not threshold_m > 0:
-            raise ValueError(f"threshold_m={threshold_m!r}: must be > 0")
-        self.threshold_m = threshold_m
-
-    def reset(self, seed: int | None = None) -> None:
-        pass
+        self.threshold_m = _positive("threshold_m", threshold_m)
 
     def act(self, observations, infos):
         residual = _field(observations, "tag_fix_rms_residual_m").max()
         return _all(observations, bool(residual > self.threshold_m))
 
 
-class NeverPolicy:
-    uses_ground_truth = False
-
-    def reset(self, seed: int | None = None) -> None:
-        pass
-
+class NeverPolicy(_Stateless):
     def act(self, observations, infos):
         return _all(observations, False)
 
 
-class AlwaysPolicy:
-    uses_ground_truth = False
-
-    def reset(self, seed: int | None = None) -> None:
-        pass
-
+class AlwaysPolicy(_Stateless):
     def act(self, observations, infos):
         return _all(observations, True)
 
@@ -125,19 +116,14 @@ class RandomPolicy:
         return _all(observations, bool(self.rng.random() < self.rate))
 
 
-class OraclePolicy:
+class OraclePolicy(_Stateless):
     """GROUND TRUTH (a bound, not deployable): calibrate when the true mean anchor error,
     read from ``infos["mean_anchor_error_m"]``, exceeds ``threshold_m``."""
 
     uses_ground_truth = True
 
     def __init__(self, threshold_m: float = 0.1):
-        if not threshold_m > 0:
-            raise ValueError(f"threshold_m={threshold_m!r}: must be > 0")
-        self.threshold_m = threshold_m
-
-    def reset(self, seed: int | None = None) -> None:
-        pass
+        self.threshold_m = _positive("threshold_m", threshold_m)
 
     def act(self, observations, infos):
         if not infos:

@@ -19,9 +19,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import print_table, rate, write_results  # noqa: E402
+from bench_sim import sim_step_rate  # noqa: E402
 
 import uwb_env  # noqa: E402
-from uwb_env.sim import World  # noqa: E402
+from uwb_env.config import SimConfig  # noqa: E402
 
 
 def env_rate(seconds: float, **kwargs) -> float:
@@ -32,14 +33,7 @@ def env_rate(seconds: float, **kwargs) -> float:
 
 
 def sim_rate(seconds: float) -> float:
-    world = World()
-    world.reset(np.random.default_rng(0))
-
-    def step():
-        world.step()
-        world.measure_tag_ranges()
-
-    return rate(step, seconds, batch=500)
+    return sim_step_rate(SimConfig(), seconds)
 
 
 def calibration_step_ms(n_anchors: int, repeats: int) -> float:
