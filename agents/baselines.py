@@ -38,12 +38,9 @@ class _Stateless:
 
 
 class FixedIntervalPolicy:
-    """The paper's baseline: calibrate every ``interval_steps`` steps (or ``interval_s``).
-
-    The count restarts when a round finishes, so rounds start exactly every k steps of
-    calibrated operation plus the round itself; with ``from_request=True`` the clock runs
-    from each request instead (rounds start exactly every k steps while k exceeds a round).
-    """
+    """The paper's baseline: request a calibration every ``interval_steps`` steps (or every
+    ``interval_s`` seconds at ``dt_s``); rounds start exactly every k steps while k is longer
+    than a round (requests during a round are ignored by the env)."""
 
     uses_ground_truth = False
 

@@ -35,10 +35,8 @@ def test_max_cycles():
 
 def test_render_rgb_array():
     pytest.importorskip("matplotlib")
-    env = parallel_to_aec(uwb_env.parallel_env(max_cycles=10, render_mode="rgb_array"))
     render_test(lambda render_mode=None: parallel_to_aec(uwb_env.parallel_env(max_cycles=10, render_mode=render_mode)),
                 custom_tests={"rgb_array": lambda frame: frame.ndim == 3 and frame.shape[2] == 3})
-    env.close()
 
 
 def test_scheduler_env_check_env_and_registration():

@@ -252,14 +252,11 @@ class CalibrationConfig(ConfigBase):
     ``n * handoff_s + n * (n - 1) * K * exchange_s``; the two constants are fitted (exactly,
     two equations, two unknowns) to ``reference_latencies_s`` measured with
     ``reference_n_anchors`` anchors: the paper's 0.9 s at K=5 and 2.5 s at K=50 for 4 anchors.
-    ``min_range_std_m`` floors the per-pair std used to weight the solver (a std estimated from
-    K=5 samples can be near zero by chance).
     """
 
     measurements_per_pair: int = 5
     reference_n_anchors: int = 4
     reference_latencies_s: tuple[tuple[int, float], ...] = ((5, 0.9), (50, 2.5))
-    min_range_std_m: float = 0.03
 
     def __post_init__(self) -> None:
         self._integer("measurements_per_pair", 1, 10_000)
@@ -275,7 +272,6 @@ class CalibrationConfig(ConfigBase):
             raise ConfigError(
                 "reference_latencies_s", refs, "must be two (K, seconds) pairs with distinct K > 0"
             )
-        self._non_negative("min_range_std_m")
 
 
 @dataclass(frozen=True)

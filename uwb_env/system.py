@@ -85,7 +85,7 @@ class LocalizationSystem:
         self._hist_index = 0
         self.last_round_links: np.ndarray | None = None
         true_start, est_start = self.world.anchors_true.copy(), self.world.anchors_est.copy()
-        matrix = self._run_round_blocking()
+        matrix, _ = self.world.run_calibration_round()
         result = calibrate_anchors(
             self._corrected(matrix), dim=dim, loss=cfg.solver.loss, f_scale=cfg.solver.f_scale_sigmas,
             range_std_m=self.range_std_m,
@@ -148,12 +148,6 @@ class LocalizationSystem:
             return k > self.n_anchors / 2
         return k == self.n_anchors
 
-    def _run_round_blocking(self) -> RangeMatrix:
-        self.world.start_calibration_round()
-        while not self.world.round.done:
-            self.world.step()
-        return self.world.finish_calibration_round().result()
-
     def _corrected(self, matrix: RangeMatrix) -> RangeMatrix:
         return RangeMatrix(self.range_model.correct(matrix.mean_m), self.range_model.correct_std(matrix.std_m),
                            matrix.count)
@@ -188,10 +182,8 @@ class LocalizationSystem:
     # -- tags ------------------------------------------------------------------------------------
     def predicted_anchor_var_m2(self) -> np.ndarray:
         """Each anchor's predicted position error variance: calibration + drift model."""
-        drift = self.world.odometry.expected_error_var_m2(
-            self.distance_since_calibration_m, self.steps_since_calibration, self.dim
-        )
-        return self.calibration_var_m2 + drift
+        return self._cached("predicted_var", lambda: self.calibration_var_m2 + self.world.odometry.expected_error_var_m2(
+            self.distance_since_calibration_m, self.steps_since_calibration, self.dim))
 
     def _fix_tags(self) -> None:
         if self.n_tags == 0:

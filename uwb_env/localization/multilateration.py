@@ -104,30 +104,11 @@ def locate_tags(
             p = np.where(warm[:, None], init, p)
         p = np.where(np.isfinite(p), p, 0.0)
 
-    if dim == 2:
-        p, iterations = _gauss_newton_2d(p, anchors, r, base_var, base_iv, valid, enough, anchor_covariance,
-                                         loss, f_scale, max_iterations, tol_m)
-        if not with_covariance:
-            return _light_result(p, anchors, r, valid, n_ranges, enough, iterations)
-        max_iterations = 0
-    iterations_general = 0
-    for iterations_general in range(1, max_iterations + 1):
-        diff = p[:, None, :] - anchors[None, :, :]
-        dist = np.sqrt((diff * diff).sum(-1))
-        u = diff / np.maximum(dist, 1e-12)[..., None]
-        iv = _inverse_variance(base_var, base_iv, u, anchor_covariance, valid)
-        res = dist - r
-        w = iv * (irls_weights(res * np.sqrt(iv), loss, f_scale) if loss != "linear" else 1.0)
-        uw = u * w[..., None]
-        hess = np.einsum("tai,taj->tij", uw, u) + 1e-12 * np.eye(dim)
-        grad = np.einsum("tai,ta->ti", uw, res)
-        step = -np.linalg.solve(hess, grad[..., None])[..., 0]
-        step[~enough] = 0.0
-        p = p + step
-        if np.abs(step).max() < tol_m:
-            break
-    if dim != 2:
-        iterations = iterations_general
+    solve = _gauss_newton_2d if dim == 2 else _gauss_newton_nd
+    p, iterations = solve(p, anchors, r, base_var, base_iv, valid, enough, anchor_covariance,
+                          loss, f_scale, max_iterations, tol_m)
+    if dim == 2 and not with_covariance:
+        return _light_result(p, anchors, r, valid, n_ranges, enough, iterations)
 
     diff = p[:, None, :] - anchors[None, :, :]
     dist = np.sqrt((diff * diff).sum(-1))
@@ -138,12 +119,7 @@ def locate_tags(
     info = np.einsum("tai,taj->tij", u * w[..., None], u)
     geo = np.einsum("tai,taj->tij", u * valid[..., None], u)
     eig = np.linalg.eigvalsh(geo)
-    degenerate = enough & (eig[:, 0] <= 1e-8 * np.maximum(eig[:, -1], 1e-300))
-    status = np.full(n_tags, OK)
-    status[~enough] = TOO_FEW_RANGES
-    status[degenerate] = DEGENERATE
-    converged = np.isfinite(p).all(axis=1)
-    status[(status == OK) & ~converged] = NOT_CONVERGED
+    status = _status(p, enough, eig[:, 0], eig[:, -1])
     good = status == OK
     cov = np.full((n_tags, dim, dim), np.nan)
     gdop = np.full(n_tags, np.nan)
@@ -153,6 +129,37 @@ def locate_tags(
     positions = np.where(good[:, None], p, np.nan)
     rms = np.sqrt((res**2).sum(1) / np.maximum(n_ranges, 1))
     return TagFixResult(positions, cov, gdop, rms, n_ranges, status, iterations)
+
+
+def _status(p, enough, eig_min, eig_max) -> np.ndarray:
+    """Per-tag status from range counts, the geometry's eigenvalues and finiteness."""
+    status = np.full(len(p), OK)
+    status[~enough] = TOO_FEW_RANGES
+    status[enough & (eig_min <= 1e-8 * np.maximum(eig_max, 1e-300))] = DEGENERATE
+    status[(status == OK) & ~np.isfinite(p).all(axis=1)] = NOT_CONVERGED
+    return status
+
+
+def _gauss_newton_nd(p, anchors, r, base_var, base_iv, valid, enough, anchor_cov, loss, f_scale, iters, tol):
+    """Gauss-Newton for any dimension, batched over tags with einsum / batched solves."""
+    dim = anchors.shape[1]
+    it = 0
+    for it in range(1, iters + 1):
+        diff = p[:, None, :] - anchors[None, :, :]
+        dist = np.sqrt((diff * diff).sum(-1))
+        u = diff / np.maximum(dist, 1e-12)[..., None]
+        iv = _inverse_variance(base_var, base_iv, u, anchor_cov, valid)
+        res = dist - r
+        w = iv * (irls_weights(res * np.sqrt(iv), loss, f_scale) if loss != "linear" else 1.0)
+        uw = u * w[..., None]
+        hess = np.einsum("tai,taj->tij", uw, u) + 1e-12 * np.eye(dim)
+        grad = np.einsum("tai,ta->ti", uw, res)
+        step = -np.linalg.solve(hess, grad[..., None])[..., 0]
+        step[~enough] = 0.0
+        p = p + step
+        if np.abs(step).max() < tol:
+            break
+    return p, it
 
 
 def _gauss_newton_2d(p, anchors, r, base_var, base_iv, valid, enough, anchor_cov, loss, f_scale, iters, tol):
@@ -192,13 +199,9 @@ def _light_result(p, anchors, r, valid, n_ranges, enough, iterations):
     ux, uy = dx / dist, dy / dist
     vx, vy = ux * valid, uy * valid
     a, b, c = (vx * ux).sum(1), (vx * uy).sum(1), (vy * uy).sum(1)
-    tr = a + c
+    half_tr = (a + c) / 2
     disc = np.sqrt(np.maximum((a - c) ** 2 / 4 + b * b, 0.0))
-    degenerate = enough & (tr / 2 - disc <= 1e-8 * np.maximum(tr / 2 + disc, 1e-300))
-    status = np.full(len(p), OK)
-    status[~enough] = TOO_FEW_RANGES
-    status[degenerate] = DEGENERATE
-    status[(status == OK) & ~np.isfinite(p).all(1)] = NOT_CONVERGED
+    status = _status(p, enough, half_tr - disc, half_tr + disc)  # 2x2 eigenvalues in closed form
     good = status == OK
     res = np.where(valid, dist - r, 0.0)
     rms = np.sqrt((res**2).sum(1) / np.maximum(n_ranges, 1))
