@@ -68,6 +68,8 @@ class LocalizationSystem:
         cfg = self.config
         n, m, dim = self.n_anchors, self.n_tags, self.dim
         self.world.reset(rng)
+        # Per-step caches are keyed by step and calibration counts, which repeat across episodes.
+        self._cache_stamp = self._transform_key = None
         self.calibration_count = 0
         self.time_calibrating_s = 0.0
         self.time_since_calibration_s = np.zeros(n)
@@ -182,7 +184,8 @@ class LocalizationSystem:
     # -- tags ------------------------------------------------------------------------------------
     def predicted_anchor_var_m2(self) -> np.ndarray:
         """Each anchor's predicted position error variance: calibration + drift model."""
-        return self._cached("predicted_var", lambda: self.calibration_var_m2 + self.world.odometry.expected_error_var_m2(
+        drift = self.world.odometry.expected_error_var_m2
+        return self._cached("predicted_var", lambda: self.calibration_var_m2 + drift(
             self.distance_since_calibration_m, self.steps_since_calibration, self.dim))
 
     def _fix_tags(self) -> None:
