@@ -93,8 +93,12 @@ class MotionModel:
         half = 0.5 * self.area_size_m
         if (np.abs(flat - half) > half).any():
             new_xy, heading = _reflect(new_xy, heading, self.area_size_m)
-        delta = np.zeros((n, dim))
-        delta[:, :2] = (new_xy - xy).view(np.float64).reshape(n, 2)
+        step_xy = (new_xy - xy).view(np.float64).reshape(n, 2)
+        if dim == 2:
+            delta = step_xy
+        else:  # planar motion: no vertical displacement
+            delta = np.zeros((n, dim))
+            delta[:, :2] = step_xy
         xy[:] = new_xy
         self.headings = heading
         turn = np.abs((heading - old_heading + np.pi) % (2 * np.pi) - np.pi)

@@ -29,6 +29,7 @@ class OdometryModel:
         self.yaw_error_rad = np.zeros(n)
         self.slip_left_s = np.zeros(n)
         self._slip_dt_s, self._slip_q = -1.0, np.inf
+        self._any_slip = False
         self._yaw_var_per_m = cfg.yaw_noise_std_rad_per_sqrt_m**2
         self._yaw_var_per_rad = cfg.yaw_noise_std_rad_per_rad**2
 
@@ -44,25 +45,30 @@ class OdometryModel:
             return delta + rng.uniform(-e, e, (n, dim))
         # 4n normals: [0, 2n) complex white noise, [2n, 3n) yaw increments, [3n, 4n) slip starts.
         noise = rng.standard_normal(4 * n)
+        gain = 1.0
         if cfg.slip_rate_per_s > 0.0:
-            slipping = self.slip_left_s > 0.0
-            self.slip_left_s = np.maximum(self.slip_left_s - dt_s, 0.0)
             if dt_s != self._slip_dt_s:  # the threshold depends on dt only: compute it once
                 self._slip_dt_s, self._slip_q = dt_s, upper_tail_threshold(cfg.slip_rate_per_s * dt_s)
             start = noise[3 * n :] > self._slip_q
-            self.slip_left_s = np.where(start & ~slipping, cfg.slip_duration_s, self.slip_left_s)
-            gain = np.where(slipping, cfg.slip_noise_multiplier, 1.0)
-        else:
-            gain = 1.0
-        d = np.ascontiguousarray(delta[:, :2]).view(np.complex128)[:, 0]
+            # Slips are rare: skip the per-robot bookkeeping while nobody slips or starts to.
+            if self._any_slip or start.any():
+                slipping = self.slip_left_s > 0.0
+                self.slip_left_s = np.maximum(self.slip_left_s - dt_s, 0.0)
+                self.slip_left_s = np.where(start & ~slipping, cfg.slip_duration_s, self.slip_left_s)
+                self._any_slip = bool((self.slip_left_s > 0.0).any())
+                gain = np.where(slipping, cfg.slip_noise_multiplier, 1.0)
+        d = (delta if dim == 2 else np.ascontiguousarray(delta[:, :2])).view(np.complex128)[:, 0]
         dist = np.abs(d)
         # yaw error random-walks with distance travelled and with turning
         yaw_var = self._yaw_var_per_m * dist + self._yaw_var_per_rad * turn_rad
         self.yaw_error_rad = self.yaw_error_rad + gain * np.sqrt(yaw_var) * noise[2 * n : 3 * n]
         white = (gain * cfg.noise_std_m_per_sqrt_m) * np.sqrt(dist)
         est = self.scale * np.exp(1j * self.yaw_error_rad) * d + white * noise[: 2 * n].view(np.complex128)
-        out = delta.copy()
-        out[:, :2] = est.view(np.float64).reshape(n, 2)
+        planar = est.view(np.float64).reshape(n, 2)
+        if dim == 2:
+            return planar
+        out = delta.copy()  # the vertical part is integrated without error
+        out[:, :2] = planar
         return out
 
     def expected_error_var_m2(self, distance_m: np.ndarray, steps: np.ndarray, dim: int = 2) -> np.ndarray:
