@@ -260,3 +260,31 @@ def test_anchor_covariance_inflates_tag_covariance():
     infl = locate_tags(anchors, ranges, 0.06, anchor_covariance=np.tile(0.2**2 * np.eye(2), (4, 1, 1)))
     assert np.trace(infl.covariance[0]) > 5 * np.trace(plain.covariance[0])
     np.testing.assert_allclose(infl.positions, plain.positions, atol=1e-9)
+
+
+def _reflect(p, a, b):
+    u = (b - a) / np.linalg.norm(b - a)
+    v = p - a
+    return a + 2 * (v @ u) * u - v
+
+
+def test_later_calibration_restarts_from_the_ranges_when_the_prior_is_folded():
+    x = np.array([[0.0, 0.0], [6.0, 0.0], [6.0, 5.0], [0.0, 5.0]])
+    prior = x.copy()
+    prior[2] = _reflect(x[2], x[1], x[3])  # anchor 2 mirrored across the line 1-3
+    stuck = calibrate_anchors(distances(x), prior=prior, range_std_m=0.05, restart_sigmas=np.inf)
+    assert aligned_errors(stuck.positions, x).max() > 1.0  # the warm start alone stays folded
+    res = calibrate_anchors(distances(x), prior=prior, range_std_m=0.05)
+    assert res.initializer == "prior+trilateration"
+    assert aligned_errors(res.positions, x).max() < 1e-6
+
+
+def test_tag_tracking_restarts_a_warm_start_stuck_in_a_mirror_minimum():
+    anchors = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]])
+    tag = np.array([[2.0, 3.0]])
+    ranges = np.linalg.norm(anchors - tag, axis=1)[None]
+    wrong = np.array([[8.0, 7.0]])  # far side of the diagonal: a bad warm start
+    stuck = locate_tags(anchors, ranges, 0.05, initial=wrong, max_iterations=1)
+    assert np.linalg.norm(stuck.positions - tag) > 0.5
+    fixed = locate_tags(anchors, ranges, 0.05, initial=wrong, max_iterations=1, restart_residual_m=0.3)
+    np.testing.assert_allclose(fixed.positions, tag, atol=1e-6)

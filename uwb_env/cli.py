@@ -43,9 +43,23 @@ def _simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _evaluate_args(p: argparse.ArgumentParser) -> None:
+    from training.evaluate import add_arguments
+
+    add_arguments(p)
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    from training.evaluate import args_from_namespace, main
+
+    main(args_from_namespace(args))
+    return 0
+
+
 # name -> (add arguments, handler, help)
 COMMANDS = {
     "simulate": (_simulate_args, _simulate, "run the simulator and print a drift/ranging summary"),
+    "evaluate": (_evaluate_args, _evaluate, "compare calibration schedulers over held-out seeds"),
 }
 
 
@@ -68,6 +82,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return COMMANDS[args.command][1](args)
     except ConfigError as err:
         print(f"uwb-env {args.command}: invalid configuration: {err}", file=sys.stderr)
+        return 2
+    except ValueError as err:  # e.g. a bad policy spec or count: one clear line, no traceback
+        print(f"uwb-env {args.command}: {err}", file=sys.stderr)
         return 2
 
 

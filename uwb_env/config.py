@@ -327,12 +327,15 @@ class SolverConfig(ConfigBase):
     f_scale_sigmas: float = 3.0
     tag_iterations: int = 2
     use_anchor_covariance: bool = True
+    # A tracked tag whose fix residual exceeds this is re-solved from the closed form.
+    tag_restart_residual_m: float = 0.3
 
     def __post_init__(self) -> None:
         self._choice("gauge", ("anchor0", "prior"))
         self._choice("loss", ("linear", "huber", "soft_l1", "cauchy"))
         self._positive("f_scale_sigmas")
         self._integer("tag_iterations", 1, 100)
+        self._positive("tag_restart_residual_m")
 
 
 @dataclass(frozen=True)

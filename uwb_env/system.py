@@ -180,6 +180,8 @@ class LocalizationSystem:
         self.time_since_calibration_s[:] = 0.0
         self.distance_since_calibration_m[:] = 0.0
         self.steps_since_calibration[:] = 0
+        # Residuals of fixes against the old estimates say nothing about the new ones.
+        self._hist_index = 0
 
     # -- tags ------------------------------------------------------------------------------------
     def predicted_anchor_var_m2(self) -> np.ndarray:
@@ -202,7 +204,7 @@ class LocalizationSystem:
         fix = locate_tags(
             self.world.anchors_est, ranges, self.range_std_m, anchor_covariance=cov, loss=solver.loss,
             f_scale=solver.f_scale_sigmas, initial=self.tag_fix, max_iterations=solver.tag_iterations,
-            with_covariance=False,
+            with_covariance=False, restart_residual_m=solver.tag_restart_residual_m,
         )
         ok = fix.ok
         dt = self.world.dt_s

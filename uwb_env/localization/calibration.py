@@ -56,7 +56,8 @@ class CalibrationResult:
         pairs: (P, 2) anchor pairs used; ``ranges_m`` their (combined) ranges.
         residuals_m: (P,) fitted minus measured range per pair.
         iterations, cost, converged, message: optimizer diagnostics.
-        initializer: "trilateration", "mds" or "prior".
+        initializer: "trilateration", "mds", "prior", or "prior+trilateration" / "prior+mds"
+            when the prior's solution was replaced by a restart from the ranges alone.
         gauge_refs: anchors fixing the internal gauge (origin, +x, +y[, +z]).
     """
 
@@ -108,6 +109,7 @@ def calibrate_anchors(
     min_range_std_m: float = 0.03,
     initializer: str = "auto",
     max_iterations: int = 50,
+    restart_sigmas: float = 8.0,
 ) -> CalibrationResult:
     """Estimate all anchor positions from a calibration round.
 
@@ -124,6 +126,8 @@ def calibrate_anchors(
         min_range_std_m: floor on the per-pair std (a std from K=5 samples can be ~0).
         initializer: ``auto`` (trilateration, MDS fallback), ``trilateration`` or ``mds``.
         max_iterations: Levenberg-Marquardt iterations.
+        restart_sigmas: with a prior, a residual above this many range stds triggers a second
+            solve from the ranges alone (trilateration/MDS); the lower cost wins.
 
     Raises:
         TooFewAnchorsError, InvalidRangeError, DisconnectedGraphError, GeometryError,
@@ -164,13 +168,27 @@ def calibrate_anchors(
         x = template.reshape(n, dim)
         return model.evaluate(x) - dist, model.jacobian(x)[:, free]
 
+    def solve(start_gauge: np.ndarray):
+        template[:] = np.where(free, 0.0, start_gauge.ravel())
+        theta0 = start_gauge.ravel()[free]
+        if loss != "linear":
+            # Robust losses are non-convex: start them from the plain least-squares solution so
+            # an outlier-corrupted initial guess does not trap them in a wrong minimum.
+            theta0 = levenberg_marquardt(residual_and_jacobian, theta0, 1.0 / var, "linear", 1.0,
+                                         max_iterations).theta
+        return levenberg_marquardt(residual_and_jacobian, theta0, 1.0 / var, loss, f_scale, max_iterations)
+
+    out = solve(x0_gauge)
+    if prior is not None and np.max(np.abs(out.residuals) / np.sqrt(var)) > restart_sigmas:
+        # A prior far off (long drift) can sit in the basin of a folded shape (one anchor
+        # mirrored across a line through two others): the residuals then stay metres large.
+        # Restart from the ranges alone, in the same gauge, and keep the lower cost.
+        cold, cold_name = _initial_positions(pairs, dist, n, dim, "auto")
+        rot_c, trans_c = paper_frame(cold, refs)
+        out_cold = solve(cold @ rot_c.T + trans_c)
+        if out_cold.cost < out.cost:
+            out, init_name = out_cold, "prior+" + cold_name
     template[:] = np.where(free, 0.0, x0_gauge.ravel())
-    theta0 = x0_gauge.ravel()[free]
-    if loss != "linear":
-        # Robust losses are non-convex: start them from the plain least-squares solution so
-        # an outlier-corrupted initial guess does not trap them in a wrong minimum.
-        theta0 = levenberg_marquardt(residual_and_jacobian, theta0, 1.0 / var, "linear", 1.0, max_iterations).theta
-    out = levenberg_marquardt(residual_and_jacobian, theta0, 1.0 / var, loss, f_scale, max_iterations)
     template[free] = out.theta
     x_gauge = template.reshape(n, dim).copy()
     cov_gauge = _covariance(out.information, free, n, dim)

@@ -62,6 +62,7 @@ def locate_tags(
     max_iterations: int = 10,
     tol_m: float = 1e-6,
     with_covariance: bool = True,
+    restart_residual_m: float | None = None,
 ) -> TagFixResult:
     """Locate T tags from their ranges to N anchors.
 
@@ -75,7 +76,30 @@ def locate_tags(
             to the closed form.
         max_iterations, tol_m: Gauss-Newton stopping rule (largest step below ``tol_m``).
         with_covariance: compute covariance and GDOP (skip when tracking in a hot loop).
+        restart_residual_m: warm-started tags whose RMS residual exceeds this are solved again
+            from the closed form, and the lower residual wins (a stale warm start can sit in a
+            wrong minimum, e.g. mirrored across a line of anchors, and would never leave it).
     """
+    result = _locate(anchors, ranges_m, range_std_m, anchor_covariance, loss, f_scale, initial, max_iterations,
+                     tol_m, with_covariance)
+    if restart_residual_m is None or initial is None:
+        return result
+    warm = np.isfinite(np.asarray(initial, dtype=float)).all(axis=1)
+    rows = np.flatnonzero(warm & ~(result.residual_rms_m <= restart_residual_m))
+    if len(rows) == 0:
+        return result
+    std = np.asarray(range_std_m, dtype=float)
+    cold = _locate(anchors, np.atleast_2d(ranges_m)[rows], std[rows] if std.ndim == 2 else std, anchor_covariance,
+                   loss, f_scale, None, max(max_iterations, 10), tol_m, with_covariance)
+    better = cold.ok & ~(cold.residual_rms_m >= result.residual_rms_m[rows])
+    take = rows[better]
+    for name in ("positions", "covariance", "gdop", "residual_rms_m", "n_ranges", "status"):
+        getattr(result, name)[take] = getattr(cold, name)[better]
+    return result
+
+
+def _locate(anchors, ranges_m, range_std_m, anchor_covariance, loss, f_scale, initial, max_iterations, tol_m,
+            with_covariance) -> TagFixResult:
     check_loss(loss)
     anchors = np.asarray(anchors, dtype=float)
     ranges_m = np.atleast_2d(np.asarray(ranges_m, dtype=float))

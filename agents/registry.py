@@ -1,0 +1,57 @@
+"""Policies by name: ``"fixed:10"``, ``"threshold:0.15"``, ``"learned:model.zip"``, ...
+
+A *spec* is ``name`` or ``name:parameter``; the evaluation harness, the CLI and the sweeps
+all build policies from specs so that a result row names exactly what ran.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from agents.baselines import (
+    AlwaysPolicy,
+    FixedIntervalPolicy,
+    NeverPolicy,
+    OraclePolicy,
+    RandomPolicy,
+    ResidualTriggerPolicy,
+    UncertaintyThresholdPolicy,
+)
+
+
+def _learned(path: str, dt_s: float):
+    from agents.learned import LearnedPolicy
+
+    return LearnedPolicy.load(path)
+
+
+# name -> (factory(parameter string or None, dt_s), parameter meaning)
+POLICIES: dict[str, tuple[Callable, str]] = {
+    "fixed": (lambda p, dt: FixedIntervalPolicy(interval_steps=int(p or 10)), "interval in steps (default 10)"),
+    "fixed_s": (lambda p, dt: FixedIntervalPolicy(interval_steps=None, interval_s=float(p or 2.0), dt_s=dt),
+                "interval in seconds"),
+    "threshold": (lambda p, dt: UncertaintyThresholdPolicy(float(p or 0.15)), "predicted anchor std threshold (m)"),
+    "residual": (lambda p, dt: ResidualTriggerPolicy(float(p or 0.2)), "tag-fix RMS residual threshold (m)"),
+    "never": (lambda p, dt: NeverPolicy(), "-"),
+    "always": (lambda p, dt: AlwaysPolicy(), "-"),
+    "random": (lambda p, dt: RandomPolicy(float(p or 0.05)), "request probability per step"),
+    "oracle": (lambda p, dt: OraclePolicy(float(p or 0.3)), "true mean anchor error threshold (m); GROUND TRUTH"),
+    "learned": (lambda p, dt: _learned(p, dt), "path of a saved model (.zip)"),
+}
+
+
+class PolicySpecError(ValueError):
+    """A policy spec that names no known policy or carries a bad parameter."""
+
+
+def make_policy(spec: str, dt_s: float = 0.2):
+    """Build the policy named by ``spec`` (see the module docstring)."""
+    name, _, param = spec.partition(":")
+    if name not in POLICIES:
+        raise PolicySpecError(f"policy={spec!r}: unknown name {name!r}; known: {', '.join(POLICIES)}")
+    if name == "learned" and not param:
+        raise PolicySpecError(f"policy={spec!r}: 'learned' needs a model path, e.g. learned:model.zip")
+    try:
+        return POLICIES[name][0](param or None, dt_s)
+    except (TypeError, ValueError) as err:
+        raise PolicySpecError(f"policy={spec!r}: {err}") from err

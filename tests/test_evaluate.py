@@ -1,0 +1,72 @@
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from agents.registry import POLICIES, PolicySpecError, make_policy
+from training.evaluate import EVAL_SEED_BASE, Args, format_table, main, sweep_specs
+from uwb_env.cli import main as cli_main
+
+
+def test_registry_builds_every_baseline_and_rejects_bad_specs():
+    for name in POLICIES:
+        if name != "learned":
+            assert make_policy(name).act is not None
+    assert make_policy("fixed:7").interval_steps == 7
+    assert make_policy("fixed_s:1.0", dt_s=0.2).interval_steps == 5
+    assert make_policy("oracle").uses_ground_truth
+    with pytest.raises(PolicySpecError, match="'bogus'"):
+        make_policy("bogus:3")
+    with pytest.raises(PolicySpecError, match="threshold:-1"):
+        make_policy("threshold:-1")
+    with pytest.raises(PolicySpecError, match="model path"):
+        make_policy("learned")
+
+
+def test_harness_on_a_tiny_run_writes_sane_files(tmp_path):
+    out = tmp_path / "ev"
+    args = Args(policies=["fixed:5", "never", "oracle:0.2"], seeds=2, max_cycles=40, sweep=False,
+                workers=1, out=str(out), progress=False)
+    results = main(args)
+    rows = {r["policy"]: r for r in results["summary"]}
+    assert set(rows) == {"fixed:5", "never", "oracle:0.2"}
+    assert results["seeds"] == [EVAL_SEED_BASE, EVAL_SEED_BASE + 1]  # held-out seeds
+    # fixed:5 at dt 0.2 s starts a round every 5 steps = 1 s (rounds last < 5 steps): 60 per minute
+    assert rows["fixed:5"]["calibrations_per_min"] == pytest.approx(60.0)
+    assert rows["never"]["calibrations_per_min"] == 0 and rows["never"]["fraction_calibrating"] == 0
+    assert rows["fixed:5"]["mean_anchor_error_m"] < rows["never"]["mean_anchor_error_m"]
+    assert rows["oracle:0.2"]["uses_ground_truth"] and not rows["never"]["uses_ground_truth"]
+    for r in rows.values():
+        assert 0 <= r["median_tag_error_m"] <= r["p95_tag_error_m"]
+        assert np.isfinite(r["return"]) and r["return"] <= 0
+    with open(out / "episodes.csv") as f:
+        episodes = list(csv.DictReader(f))
+    assert len(episodes) == 3 * 2
+    summary = json.loads((out / "summary.json").read_text())
+    assert {r["policy"] for r in summary["summary"]} == set(rows)
+    for name in ("error_over_time.png", "boxplot.png", "tradeoff.png"):
+        assert (out / name).stat().st_size > 1000
+    assert "oracle:0.2 (GT)" in format_table(results["summary"])
+
+
+def test_parallel_workers_give_the_same_numbers_as_one_process(tmp_path):
+    common = dict(policies=["threshold:0.1"], seeds=2, max_cycles=30, sweep=False, out=None, progress=False)
+    one = main(Args(workers=1, **common))["summary"][0]
+    two = main(Args(workers=2, **common))["summary"][0]
+    assert one == two
+
+
+def test_sweep_specs_cover_both_families():
+    specs = sweep_specs()
+    assert any(s.startswith("fixed:") for s in specs) and any(s.startswith("threshold:") for s in specs)
+    for s in specs:
+        make_policy(s)
+
+
+def test_cli_evaluate_prints_the_table_and_rejects_a_bad_policy(tmp_path, capsys):
+    assert cli_main(["evaluate", "--policies", "fixed:10", "--seeds", "1", "--max-cycles", "20", "--no-sweep",
+                     "--workers", "1", "--out", str(tmp_path), "--no-plots", "--quiet"]) == 0
+    assert "fixed:10" in capsys.readouterr().out
+    assert cli_main(["evaluate", "--policies", "nope", "--seeds", "1", "--no-sweep", "--out", str(tmp_path)]) == 2
+    assert "unknown name 'nope'" in capsys.readouterr().err

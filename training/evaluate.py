@@ -1,0 +1,274 @@
+"""Evaluation harness: run calibration schedulers over held-out seeds and compare them.
+
+Usage (also ``uwb-env evaluate``)::
+
+    python -m training.evaluate --policies fixed:10 threshold:0.15 oracle --seeds 8 --workers 2
+
+Per policy it reports tag error (mean, median, p95), anchor error, calibrations per minute,
+fraction of time calibrating and return, and writes into ``--out``:
+
+- ``episodes.csv``: one row per (policy, seed);
+- ``summary.csv`` / ``summary.json``: per policy, the mean over seeds (plus the standard error
+  of the mean tag error);
+- ``error_over_time.png``, ``boxplot.png``, ``tradeoff.png`` (with the ``plot`` extra): error
+  traces, per-step tag-error distributions, and tag error vs calibration rate for the
+  fixed-interval and threshold sweeps beside the single policies.
+
+Seeds: evaluation episodes use ``EVAL_SEED_BASE + i``; training uses seeds below it, so a
+learned policy is never evaluated on an episode it trained on.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import sys
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+EVAL_SEED_BASE = 1_000_000
+DEFAULT_POLICIES = ("fixed:10", "threshold:0.15", "residual:0.2", "random:0.05", "never", "always", "oracle:0.3")
+FIXED_SWEEP_STEPS = (5, 7, 10, 15, 20, 30, 45, 70, 100)
+THRESHOLD_SWEEP_M = (0.08, 0.1, 0.12, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5)
+METRICS = ("mean_tag_error_m", "median_tag_error_m", "p95_tag_error_m", "mean_anchor_error_m",
+           "calibrations_per_min", "fraction_calibrating", "return")
+
+
+@dataclass
+class Args:
+    policies: list[str] = field(default_factory=lambda: list(DEFAULT_POLICIES))
+    """policy specs (see ``agents.registry``)"""
+    seeds: int = 6
+    """evaluation episodes per policy (seeds EVAL_SEED_BASE + seed_offset + i)"""
+    seed_offset: int = 0
+    max_cycles: int = 500
+    """steps per episode"""
+    sweep: bool = True
+    """add the fixed-interval and threshold sweeps (the trade-off curve)"""
+    config: str | None = None
+    """YAML/JSON file with EnvConfig overrides (the scenario)"""
+    workers: int = 1
+    """parallel processes (1 = in this process)"""
+    out: str | None = "runs/evaluate"
+    """output folder (None: write nothing)"""
+    plots: bool = True
+    progress: bool = True
+
+
+def _label_group(spec: str) -> str:
+    return spec.partition(":")[0]
+
+
+def sweep_specs() -> list[str]:
+    return [f"fixed:{k}" for k in FIXED_SWEEP_STEPS] + [f"threshold:{t}" for t in THRESHOLD_SWEEP_M]
+
+
+def _env_config(overrides: dict, max_cycles: int):
+    from uwb_env.config import EnvConfig
+
+    return EnvConfig.from_dict({**overrides, "max_cycles": max_cycles})
+
+
+def run_episode(spec: str, seed: int, config_dict: dict) -> dict:
+    """One episode of ``spec`` on seed ``seed``; returns its summary and per-step traces."""
+    from agents.registry import make_policy
+    from uwb_env.config import EnvConfig
+    from uwb_env.env.parallel_env import UWBCalibrationParallelEnv
+    from uwb_env.env.policy import rollout
+
+    config = EnvConfig.from_dict(config_dict)
+    env = UWBCalibrationParallelEnv(config)
+    policy = make_policy(spec, config.sim.dt_s)
+    result = rollout(env, policy, seed=seed)
+    return {
+        "policy": spec, "seed": seed, "uses_ground_truth": bool(policy.uses_ground_truth),
+        **result.summary(), "tag_error_trace": result.tag_error_m, "anchor_error_trace": result.anchor_error_m,
+    }
+
+
+def _run_star(job):
+    return run_episode(*job)
+
+
+def evaluate(args: Args) -> dict:
+    """Run every policy on every evaluation seed; write the files; return the results."""
+    from uwb_env.cli import load_overrides
+    from uwb_env.progress import progress
+
+    if args.seeds < 1:
+        raise ValueError(f"seeds={args.seeds!r}: must be >= 1")
+    if args.workers < 1:
+        raise ValueError(f"workers={args.workers!r}: must be >= 1")
+    config = _env_config(load_overrides(args.config), args.max_cycles)
+    config_dict = config.to_dict()
+    specs = list(dict.fromkeys(list(args.policies) + (sweep_specs() if args.sweep else [])))
+    from agents.registry import make_policy
+
+    for spec in specs:  # fail on a bad spec before any work starts
+        make_policy(spec, config.sim.dt_s)
+    seeds = [EVAL_SEED_BASE + args.seed_offset + i for i in range(args.seeds)]
+    jobs = [(spec, seed, config_dict) for spec in specs for seed in seeds]
+    if args.workers == 1:
+        episodes = [run_episode(*job) for job in progress(jobs, len(jobs), "evaluate", enabled=args.progress)]
+    else:
+        with ProcessPoolExecutor(max_workers=args.workers) as pool:
+            it = pool.map(_run_star, jobs, chunksize=max(1, len(jobs) // (8 * args.workers)))
+            episodes = list(progress(it, len(jobs), "evaluate", enabled=args.progress))
+    summary = summarize(episodes, specs, main=list(args.policies))
+    results = {"summary": summary, "episodes": episodes, "seeds": seeds, "config": config_dict,
+               "dt_s": config.sim.dt_s}
+    if args.out:
+        write_outputs(results, args.out, plots=args.plots)
+    return results
+
+
+def summarize(episodes: list[dict], specs: Sequence[str], main: Sequence[str]) -> list[dict]:
+    rows = []
+    for spec in specs:
+        mine = [e for e in episodes if e["policy"] == spec]
+        row = {"policy": spec, "group": "main" if spec in main else "sweep_" + _label_group(spec),
+               "uses_ground_truth": mine[0]["uses_ground_truth"], "episodes": len(mine)}
+        for m in METRICS:
+            row[m] = float(np.mean([e[m] for e in mine]))
+        tag = np.array([e["mean_tag_error_m"] for e in mine])
+        row["mean_tag_error_sem_m"] = float(tag.std(ddof=1) / np.sqrt(len(tag))) if len(tag) > 1 else 0.0
+        rows.append(row)
+    return rows
+
+
+def format_table(summary: list[dict], only_main: bool = True) -> str:
+    cols = [("policy", "policy", "{}"), ("mean_tag_error_m", "tag mean", "{:.3f}"),
+            ("median_tag_error_m", "tag med", "{:.3f}"), ("p95_tag_error_m", "tag p95", "{:.3f}"),
+            ("mean_anchor_error_m", "anchor", "{:.3f}"), ("calibrations_per_min", "cal/min", "{:.1f}"),
+            ("fraction_calibrating", "busy", "{:.1%}"), ("return", "return", "{:.1f}")]
+    rows = [r for r in summary if r["group"] == "main" or not only_main]
+    cells = [[c[1] for c in cols]] + [
+        [fmt.format(r[key]) + (" (GT)" if key == "policy" and r["uses_ground_truth"] else "") for key, _, fmt in cols]
+        for r in rows
+    ]
+    widths = [max(len(row[i]) for row in cells) for i in range(len(cols))]
+    lines = ["  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths, strict=True)))
+             for row in cells]
+    lines.insert(1, "-" * len(lines[0]))
+    return "\n".join(lines) + "\n(GT) uses ground truth: a reference, not deployable. Errors in m."
+
+
+def write_outputs(results: dict, out: str, plots: bool = True) -> list[str]:
+    os.makedirs(out, exist_ok=True)
+    written = []
+    ep_path = os.path.join(out, "episodes.csv")
+    with open(ep_path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["policy", "seed", "uses_ground_truth", *METRICS])
+        for e in results["episodes"]:
+            w.writerow([e["policy"], e["seed"], e["uses_ground_truth"], *(e[m] for m in METRICS)])
+    written.append(ep_path)
+    sum_csv = os.path.join(out, "summary.csv")
+    keys = list(results["summary"][0])
+    with open(sum_csv, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=keys)
+        w.writeheader()
+        w.writerows(results["summary"])
+    written.append(sum_csv)
+    sum_json = os.path.join(out, "summary.json")
+    with open(sum_json, "w") as f:
+        json.dump({"summary": results["summary"], "seeds": results["seeds"], "config": results["config"]}, f,
+                  indent=2)
+    written.append(sum_json)
+    if plots:
+        written += write_plots(results, out)
+    return written
+
+
+def write_plots(results: dict, out: str) -> list[str]:
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("matplotlib not installed (pip install 'uwb-env[plot]'): skipping plots", file=sys.stderr)
+        return []
+    summary, episodes, dt = results["summary"], results["episodes"], results["dt_s"]
+    main = [r["policy"] for r in summary if r["group"] == "main"]
+    paths = []
+
+    fig, ax = plt.subplots(figsize=(9, 4.5))
+    for spec in main:
+        traces = np.array([e["tag_error_trace"] for e in episodes if e["policy"] == spec])
+        ax.plot(np.arange(traces.shape[1]) * dt, np.median(traces, axis=0), label=spec, lw=1)
+    ax.set(xlabel="time (s)", ylabel="median tag error over seeds (m)", yscale="log",
+           title="Tag error over time")
+    ax.legend(fontsize=8, ncol=2)
+    paths.append(_save(fig, out, "error_over_time.png"))
+
+    fig, ax = plt.subplots(figsize=(9, 4.5))
+    data = [np.concatenate([e["tag_error_trace"] for e in episodes if e["policy"] == spec]) for spec in main]
+    ax.boxplot(data, showfliers=False)
+    ax.set_xticks(range(1, len(main) + 1), main, rotation=20, fontsize=8)
+    ax.set(ylabel="tag error per step (m)", title="Tag error distribution (whiskers 1.5 IQR, no fliers)")
+    paths.append(_save(fig, out, "boxplot.png"))
+
+    fig, ax = plt.subplots(figsize=(7, 5))
+    for group, style in (("fixed", "o-"), ("threshold", "s-")):
+        pts = sorted((r["calibrations_per_min"], r["mean_tag_error_m"]) for r in summary
+                     if _label_group(r["policy"]) == group and r["calibrations_per_min"] > 0)
+        if len(pts) > 1:
+            ax.plot(*zip(*pts, strict=True), style, label=f"{group} sweep", ms=4, alpha=0.7)
+    for r in summary:
+        if r["group"] == "main":
+            ax.plot(r["calibrations_per_min"], r["mean_tag_error_m"], "*", ms=11,
+                    label=r["policy"] + (" (GT)" if r["uses_ground_truth"] else ""))
+    ax.set(xlabel="calibrations per minute", ylabel="mean tag error (m)", yscale="log",
+           title="Error vs calibration rate")
+    ax.legend(fontsize=8)
+    paths.append(_save(fig, out, "tradeoff.png"))
+    return paths
+
+
+def _save(fig, out: str, name: str) -> str:
+    import matplotlib.pyplot as plt
+
+    path = os.path.join(out, name)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    d = Args()
+    p.add_argument("--policies", nargs="+", default=d.policies, help="policy specs, e.g. fixed:10 threshold:0.15 "
+                   "learned:model.zip (default: the baselines, plus the shipped model if present)")
+    p.add_argument("--seeds", type=int, default=d.seeds, help=f"episodes per policy (default {d.seeds})")
+    p.add_argument("--seed-offset", type=int, default=d.seed_offset)
+    p.add_argument("--max-cycles", type=int, default=d.max_cycles, help=f"steps per episode (default {d.max_cycles})")
+    p.add_argument("--no-sweep", dest="sweep", action="store_false", help="skip the fixed/threshold sweeps")
+    p.add_argument("--config", default=None, help="YAML/JSON file with EnvConfig overrides")
+    p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="parallel processes")
+    p.add_argument("--out", default=d.out, help=f"output folder (default {d.out})")
+    p.add_argument("--no-plots", dest="plots", action="store_false")
+    p.add_argument("--quiet", dest="progress", action="store_false", help="no progress bar")
+
+
+def args_from_namespace(ns: argparse.Namespace) -> Args:
+    return Args(**{k: getattr(ns, k) for k in asdict(Args())})
+
+
+def main(args: Args) -> dict:
+    results = evaluate(args)
+    print(format_table(results["summary"]))
+    if args.out:
+        print(f"wrote {args.out}/ (episodes.csv, summary.csv, summary.json{', plots' if args.plots else ''})")
+    return results
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_arguments(parser)
+    main(args_from_namespace(parser.parse_args()))
