@@ -30,7 +30,7 @@ import json
 import os
 import platform
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from datetime import date
 
 import numpy as np
@@ -79,7 +79,8 @@ def run(seed: int, steps: int) -> dict[str, np.ndarray]:
         anchors.append(a)
         tags.append(t)
         rotation.append(r)
-    return {"anchor_error_m": np.array(anchors), "tag_error_m": np.array(tags), "rotation_error_rad": np.array(rotation)}
+    return {"anchor_error_m": np.array(anchors), "tag_error_m": np.array(tags),
+            "rotation_error_rad": np.array(rotation)}
 
 
 def paper_frame_errors(system) -> tuple[np.ndarray, np.ndarray, float]:
