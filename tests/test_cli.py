@@ -15,3 +15,13 @@ def test_bad_config_file_is_reported(tmp_path, capsys):
     path.write_text("ranging:\n  nlos_prob: 0.3\n")
     assert main(["simulate", "--steps", "5", "--config", str(path)]) == 2
     assert "ranging.nlos_prob" in capsys.readouterr().err
+
+
+def test_help_lists_every_command(capsys):
+    import pytest
+
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    out = capsys.readouterr().out
+    for command in ("simulate", "evaluate", "train"):
+        assert command in out

@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import multiprocessing
 import os
 import sys
 from collections.abc import Sequence
@@ -116,7 +117,10 @@ def evaluate(args: Args) -> dict:
     if args.workers == 1:
         episodes = [run_episode(*job) for job in progress(jobs, len(jobs), "evaluate", enabled=args.progress)]
     else:
-        with ProcessPoolExecutor(max_workers=args.workers) as pool:
+        # forkserver, not fork: forking a process that has torch's thread pools running (a
+        # learned policy was loaded, or training just ran) can deadlock the children.
+        context = multiprocessing.get_context("forkserver")
+        with ProcessPoolExecutor(max_workers=args.workers, mp_context=context) as pool:
             it = pool.map(_run_star, jobs, chunksize=max(1, len(jobs) // (8 * args.workers)))
             episodes = list(progress(it, len(jobs), "evaluate", enabled=args.progress))
     summary = summarize(episodes, specs, main=list(args.policies))

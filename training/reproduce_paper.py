@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
 import os
 import platform
 from concurrent.futures import ProcessPoolExecutor
@@ -114,7 +115,7 @@ def main(args: Args) -> dict:
 
     runs, steps = (6, 120) if args.quick else (args.runs, args.steps)
     jobs = [(SEED_BASE + i, steps) for i in range(runs)]
-    with ProcessPoolExecutor(max_workers=args.workers) as pool:
+    with ProcessPoolExecutor(max_workers=args.workers, mp_context=multiprocessing.get_context("forkserver")) as pool:
         results = list(progress(pool.map(_run_star, jobs), runs, "reproduce_paper"))
     anchors = np.concatenate([r["anchor_error_m"].ravel() for r in results])
     tags = np.concatenate([r["tag_error_m"].ravel() for r in results])

@@ -56,10 +56,31 @@ def _evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _train_args(p: argparse.ArgumentParser) -> None:
+    from training.train import add_arguments
+
+    add_arguments(p)
+
+
+def _train(args: argparse.Namespace) -> int:
+    try:
+        import stable_baselines3  # noqa: F401
+
+        from training.train import args_from_namespace, main
+    except ImportError:
+        print("uwb-env train: needs the 'train' extra: pip install 'uwb-env[train]'", file=sys.stderr)
+        return 2
+    record = main(args_from_namespace(args))
+    print(json.dumps({k: record[k] for k in ("num_timesteps", "training_wall_s", "env_steps_per_s")}, indent=1))
+    print(f"model: {args.out}/model.zip  (evaluate: uwb-env evaluate --policies learned:{args.out}/model.zip fixed:10)")
+    return 0
+
+
 # name -> (add arguments, handler, help)
 COMMANDS = {
     "simulate": (_simulate_args, _simulate, "run the simulator and print a drift/ranging summary"),
     "evaluate": (_evaluate_args, _evaluate, "compare calibration schedulers over held-out seeds"),
+    "train": (_train_args, _train, "train a scheduler with stable-baselines3 (PPO/A2C/DQN)"),
 }
 
 

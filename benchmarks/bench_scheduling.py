@@ -1,0 +1,135 @@
+"""Does a learned scheduler beat the fixed-interval trade-off curve?
+
+Trains PPO on the centralized scheduler env (default dynamic scenario) within a wall-clock
+budget on this machine, then evaluates it on held-out seeds beside the fixed-interval sweep,
+the threshold heuristics and the (ground-truth) oracle. The fixed-interval curve is
+interpolated at the learned policy's calibration rate (error at matched rate), and inverted
+at its error (rate needed by a fixed interval to match it). Also measures DummyVecEnv vs
+SubprocVecEnv throughput.
+
+Writes benchmarks/results/bench_scheduling.json, docs/results/scheduling/ (table, plots) and
+ships the model in agents/models/ when it is under 5 MB. ``--quick`` ends within a minute.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks._common import print_table, write_results  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+MODEL_DIR = ROOT / "agents" / "models"  # shipped: agents/models/ppo_scheduler/model.zip
+
+
+def vec_env_throughput(kind: str, steps: int) -> float:
+    from training.train import make_vec_env
+
+    venv = make_vec_env("scheduler", 8, {}, 0, kind)
+    venv.reset()
+    n = steps // venv.num_envs
+    start = time.perf_counter()
+    for _ in range(n):
+        venv.step(np.zeros(venv.num_envs, dtype=np.int64))
+    rate = n * venv.num_envs / (time.perf_counter() - start)
+    venv.close()
+    return rate
+
+
+def fixed_curve(summary: list[dict]) -> tuple[np.ndarray, np.ndarray]:
+    pts = sorted((r["calibrations_per_min"], r["mean_tag_error_m"]) for r in summary
+                 if r["policy"].startswith("fixed:"))
+    rate, err = np.array(pts).T
+    return rate, err
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--quick", action="store_true")
+    p.add_argument("--budget-s", type=float, default=720.0, help="training wall-clock budget")
+    p.add_argument("--seeds", type=int, default=24, help="evaluation episodes per policy")
+    p.add_argument("--out", default=str(ROOT / "runs" / "bench_scheduling"))
+    a = p.parse_args()
+    budget, seeds = (15.0, 2) if a.quick else (a.budget_s, a.seeds)
+
+    from training import evaluate, train
+
+    dummy = vec_env_throughput("dummy", 2000 if a.quick else 16000)
+    subproc = vec_env_throughput("subproc", 2000 if a.quick else 16000)
+    out = Path(a.out)
+    if out.exists():
+        shutil.rmtree(out)
+    targs = train.Args(algo="ppo", env="scheduler", total_timesteps=10_000_000, seed=0, out=str(out),
+                       vec_env="dummy" if dummy >= subproc else "subproc", checkpoint_freq=50_000,
+                       eval_freq=50_000, eval_episodes=4, progress_bar=False, max_wall_s=budget)
+    record = train.main(targs)
+    model = out / "model.zip"
+
+    eargs = evaluate.Args(policies=[f"learned:{model}", "fixed:10", "threshold:0.15", "residual:0.2", "oracle:0.3"],
+                          seeds=seeds, max_cycles=500, sweep=True, workers=2,
+                          out=str(ROOT / "docs" / "results" / "scheduling") if not a.quick else str(out / "eval"),
+                          progress=True)
+    results = evaluate.main(eargs)
+    rows = {r["policy"]: r for r in results["summary"]}
+    learned = rows[f"learned:{model}"]
+    rate, err = fixed_curve(results["summary"])
+    fixed_at_rate = float(np.interp(learned["calibrations_per_min"], rate, err))
+    # The lowest rate at which the fixed-interval curve reaches the learned error (if any).
+    reach = rate[err <= learned["mean_tag_error_m"]]
+    fixed_rate_for_error = float(reach.min()) if len(reach) else float("nan")
+    error_gain = 1 - learned["mean_tag_error_m"] / fixed_at_rate
+    rate_saving = 1 - learned["calibrations_per_min"] / fixed_rate_for_error if len(reach) else float("nan")
+    met = bool(error_gain >= 0.20 or (np.isfinite(rate_saving) and rate_saving >= 0.30))
+
+    print_table("Learned scheduler vs the fixed-interval curve (held-out seeds)",
+                ["quantity", "value"],
+                [["learned mean tag error (m)", learned["mean_tag_error_m"]],
+                 ["fixed-interval error at the same rate (m)", fixed_at_rate],
+                 ["error ratio learned / fixed", learned["mean_tag_error_m"] / fixed_at_rate],
+                 ["learned calibrations / min", learned["calibrations_per_min"]],
+                 ["fixed-interval rate for the same error (/min)", fixed_rate_for_error],
+                 ["training wall (s)", record["training_wall_s"]],
+                 ["training env steps", record["num_timesteps"]],
+                 ["DummyVecEnv steps/s (8 envs)", dummy], ["SubprocVecEnv steps/s (8 envs)", subproc],
+                 ["target met (>=20% lower error or >=30% fewer calibrations)", str(met)]])
+    figures = {
+        "learned_mean_tag_error_m": learned["mean_tag_error_m"],
+        "fixed_interval_mean_tag_error_m": fixed_at_rate,
+        "learned_to_fixed_error_ratio": learned["mean_tag_error_m"] / fixed_at_rate,
+        "learned_calibrations_per_min": learned["calibrations_per_min"],
+        "fixed_interval_calibrations_per_min_for_same_error": fixed_rate_for_error,
+        "calibration_saving_vs_fixed": rate_saving,
+        "threshold_mean_tag_error_m": rows["threshold:0.15"]["mean_tag_error_m"],
+        "threshold_calibrations_per_min": rows["threshold:0.15"]["calibrations_per_min"],
+        "residual_mean_tag_error_m": rows["residual:0.2"]["mean_tag_error_m"],
+        "residual_calibrations_per_min": rows["residual:0.2"]["calibrations_per_min"],
+        "oracle_mean_tag_error_m": rows["oracle:0.3"]["mean_tag_error_m"],
+        "oracle_calibrations_per_min": rows["oracle:0.3"]["calibrations_per_min"],
+        "paper_fixed_10_mean_tag_error_m": rows["fixed:10"]["mean_tag_error_m"],
+        "training_wall_s": record["training_wall_s"],
+        "training_env_steps": record["num_timesteps"],
+        "dummy_vec_env_steps_per_s": dummy,
+        "subproc_vec_env_steps_per_s": subproc,
+        "eval_seeds": seeds,
+        "target_met": met,
+    }
+    if not a.quick:
+        write_results("bench_scheduling", figures, quick=False)
+        size = sum(f.stat().st_size for f in (model, out / "vecnormalize.pkl", out / "run.json"))
+        if size < 5_000_000:
+            (MODEL_DIR / "ppo_scheduler").mkdir(parents=True, exist_ok=True)
+            for name in ("model.zip", "vecnormalize.pkl", "run.json"):
+                shutil.copy(out / name, MODEL_DIR / "ppo_scheduler" / name)
+    else:
+        write_results("bench_scheduling_quick", figures, quick=True)
+
+
+if __name__ == "__main__":
+    main()

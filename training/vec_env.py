@@ -1,0 +1,96 @@
+"""SB3 ``VecEnv`` over PettingZoo ParallelEnv copies: one slot per (copy, anchor).
+
+Every anchor of every copy is one SB3 "environment", so one policy is shared by all anchors
+(parameter sharing) and sees each anchor's own observation. Unlike SuperSuit's conversion,
+this keeps ``PPO(seed=...)`` working (``seed()`` seeds each copy's ``reset``) and reports the
+time limit as truncation: ``dones[i]`` is True with ``infos[i]["TimeLimit.truncated"] = True``
+and ``infos[i]["terminal_observation"]`` set, so SB3 bootstraps the value at the cut.
+Copies reset automatically when their episode ends, as every SB3 VecEnv does.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+from stable_baselines3.common.vec_env.base_vec_env import VecEnv
+
+
+class ParallelEnvVecEnv(VecEnv):
+    def __init__(self, env_fns: Sequence[Callable[[], Any]]):
+        self.envs = [fn() for fn in env_fns]
+        first = self.envs[0]
+        self.agents = list(first.possible_agents)
+        for env in self.envs[1:]:
+            if list(env.possible_agents) != self.agents:
+                raise ValueError("env_fns: every copy must have the same agents")
+        self.n_agents = len(self.agents)
+        super().__init__(len(self.envs) * self.n_agents, first.observation_space(self.agents[0]),
+                         first.action_space(self.agents[0]))
+        self._actions: np.ndarray | None = None
+        self._obs = np.zeros((self.num_envs, *self.observation_space.shape), dtype=self.observation_space.dtype)
+
+    # -- VecEnv API ------------------------------------------------------------------------------
+    def reset(self):
+        for k, env in enumerate(self.envs):
+            seed = self._seeds[k * self.n_agents]
+            obs, infos = env.reset(seed=seed)
+            self._store(k, obs)
+            for j, agent in enumerate(self.agents):
+                self.reset_infos[k * self.n_agents + j] = infos.get(agent, {})
+        self._reset_seeds()
+        self._reset_options()
+        return self._obs.copy()
+
+    def step_async(self, actions: np.ndarray) -> None:
+        self._actions = np.asarray(actions).reshape(len(self.envs), self.n_agents)
+
+    def step_wait(self):
+        rewards = np.zeros(self.num_envs, dtype=np.float32)
+        dones = np.zeros(self.num_envs, dtype=bool)
+        infos: list[dict] = [{} for _ in range(self.num_envs)]
+        for k, env in enumerate(self.envs):
+            acts = {agent: int(self._actions[k, j]) for j, agent in enumerate(self.agents)}
+            obs, rew, terms, truncs, step_infos = env.step(acts)
+            base = k * self.n_agents
+            ended = False
+            for j, agent in enumerate(self.agents):
+                i = base + j
+                rewards[i] = rew[agent]
+                term, trunc = bool(terms[agent]), bool(truncs[agent])
+                info = dict(step_infos.get(agent, {}))
+                if term or trunc:
+                    ended = True
+                    dones[i] = True
+                    info["TimeLimit.truncated"] = trunc and not term
+                    info["terminal_observation"] = obs[agent]
+                infos[i] = info
+            if ended:
+                obs, reset_infos = env.reset()
+                for j, agent in enumerate(self.agents):
+                    self.reset_infos[base + j] = reset_infos.get(agent, {})
+            self._store(k, obs)
+        return self._obs.copy(), rewards, dones, infos
+
+    def close(self) -> None:
+        for env in self.envs:
+            env.close()
+
+    def get_attr(self, attr_name: str, indices=None) -> list[Any]:
+        return [getattr(self.envs[i // self.n_agents], attr_name) for i in self._get_indices(indices)]
+
+    def set_attr(self, attr_name: str, value: Any, indices=None) -> None:
+        for k in sorted({i // self.n_agents for i in self._get_indices(indices)}):
+            setattr(self.envs[k], attr_name, value)
+
+    def env_method(self, method_name: str, *method_args, indices=None, **method_kwargs) -> list[Any]:
+        return [getattr(self.envs[i // self.n_agents], method_name)(*method_args, **method_kwargs)
+                for i in self._get_indices(indices)]
+
+    def env_is_wrapped(self, wrapper_class, indices=None) -> list[bool]:
+        return [False for _ in self._get_indices(indices)]
+
+    def _store(self, k: int, obs: dict[str, np.ndarray]) -> None:
+        for j, agent in enumerate(self.agents):
+            self._obs[k * self.n_agents + j] = obs[agent]
