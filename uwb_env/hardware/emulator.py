@@ -1,0 +1,475 @@
+"""Fake DWM1001 devices that speak the real byte formats, driven by the simulator.
+
+A :class:`Scene` runs a simulator :class:`~uwb_env.sim.World` in wall-clock time (ground
+truth and the fitted range model). Devices are byte-level state machines:
+
+- :class:`TiersAnchorDevice`: anchor ID 1 of the TIERS firmware (banner; ``S`` starts a round
+  that takes as long as the timing model says; any other byte aborts it; the matrix of means
+  and population stds of K ranges per ordered pair, in truncated centimetres).
+- :class:`PansTagDevice`: a PANS tag in generic (TLV) mode after reset; ``\\r\\r`` enters the
+  shell (banner, ``dwm> ``, echo, ``lec``/``lep``/``les`` toggles at the update rate, ``aurs``,
+  ``quit``, ``reset``, empty line repeats); TLV ``dwm_loc_get``/``pos_get``/``cfg_get``/update
+  rate; ``@\\x01\\x01`` for anything else in generic mode.
+
+Ports: a pseudo-terminal per device (:class:`PtyPort`, the path is a real tty for any tool) or
+a TCP server on 127.0.0.1 (:class:`SocketPort`, ``socket://127.0.0.1:PORT``) which can also
+disappear and come back. :class:`Faults` injects garbage bytes, dropped characters, truncated
+rows, a silent (hung) device, port loss and slow responses.
+"""
+
+from __future__ import annotations
+
+import os
+import select
+import socket
+import threading
+import time
+import tty
+from dataclasses import dataclass
+
+import numpy as np
+
+from uwb_env.config import ConfigBase, SimConfig
+from uwb_env.hardware import tlv
+from uwb_env.hardware.pans_shell import AnchorRange, format_lec
+from uwb_env.hardware.tiers import BANNER_INIT, ROLE_SWAP, encode_matrix
+from uwb_env.sim import World
+
+
+@dataclass(frozen=True)
+class Faults(ConfigBase):
+    """Fault injection per device (probabilities per output chunk unless stated)."""
+
+    garbage_probability: float = 0.0
+    drop_char_probability: float = 0.0  # per character
+    truncate_row_probability: float = 0.0  # TIERS: per matrix, one row loses its tail
+    hang: bool = False  # silent: no output, input ignored (a missing TIERS anchor)
+    response_delay_s: float = 0.0  # extra latency before each output chunk
+
+    def __post_init__(self) -> None:
+        for name in ("garbage_probability", "drop_char_probability", "truncate_row_probability"):
+            self._probability(name)
+        self._non_negative("response_delay_s")
+
+
+class Scene:
+    """The simulator's world stepped in wall-clock time; thread-safe."""
+
+    def __init__(self, config: SimConfig | None = None, seed: int = 0, speedup: float = 1.0):
+        self.config = config or SimConfig()
+        self.world = World(self.config)
+        self.rng = np.random.default_rng(seed)
+        self.world.reset(self.rng)
+        self.speedup = speedup
+        self._t0 = time.monotonic()
+        self.lock = threading.Lock()
+
+    def advance(self) -> None:
+        with self.lock:
+            target = (time.monotonic() - self._t0) * self.speedup
+            while self.world.time_s + self.world.dt_s <= target:
+                self.world.step()
+
+    def anchors_true(self) -> np.ndarray:
+        self.advance()
+        with self.lock:
+            return self.world.anchors_true.copy()
+
+    def tags_true(self) -> np.ndarray:
+        self.advance()
+        with self.lock:
+            return self.world.tags_true.copy()
+
+    def measure(self, a: np.ndarray, b: np.ndarray, k: int) -> np.ndarray:
+        """k raw (biased, noisy) ranges between points a and b, NaN for dropouts."""
+        d = np.full(k, float(np.linalg.norm(np.asarray(a) - np.asarray(b))))
+        with self.lock:
+            return self.world.range_model.measure(d, self.rng)
+
+
+def anchor_id4(index: int) -> str:
+    return f"{0x1150 + index:04X}"
+
+
+class TiersAnchorDevice:
+    """Anchor ID 1 of the TIERS autocalibration firmware (4 anchors: scene anchors 0..3)."""
+
+    def __init__(self, scene: Scene, faults: Faults = Faults(), k: int | None = None, seed: int = 1):
+        if scene.config.n_anchors != 4:
+            raise ValueError(f"n_anchors={scene.config.n_anchors!r}: the TIERS firmware hard-wires 4 anchors")
+        self.scene, self.faults = scene, faults
+        self.k = k or scene.config.calibration.measurements_per_pair
+        self.rng = np.random.default_rng(seed)
+        self.out = bytearray((BANNER_INIT + "\r\n").encode())
+        self._round_start: float | None = None
+        self._swap_sent = False
+        self.rounds = 0
+
+    def receive(self, data: bytes, now: float) -> None:
+        if self.faults.hang or not data:
+            return
+        if data[-1:] == b"S":  # the last byte wins (the firmware latches c[0])
+            if self._round_start is None:
+                self._round_start, self._swap_sent = now, False
+        else:
+            self._round_start = None  # any other byte freezes the round: nothing more is printed
+
+    def poll(self, now: float) -> bytes:
+        if self.faults.hang:
+            self.out.clear()
+            return b""
+        if self._round_start is not None:
+            duration = self.scene.world.timing.duration_s(4, self.k)
+            elapsed = now - self._round_start
+            if not self._swap_sent and elapsed > duration / 4:
+                self.out += (ROLE_SWAP + "\r\n").encode()
+                self._swap_sent = True
+            if elapsed >= duration:
+                self.out += self._matrix()
+                self._round_start = None
+                self.rounds += 1
+        data, self.out = bytes(self.out), bytearray()
+        return _apply_faults(data, self.faults, self.rng)
+
+    def _matrix(self) -> bytes:
+        pos = self.scene.anchors_true()
+        mean = np.zeros((4, 4))
+        std = np.zeros((4, 4))
+        for i in range(4):
+            for j in range(4):
+                if i != j:
+                    r = self.scene.measure(pos[i], pos[j], self.k)
+                    r = r[np.isfinite(r)]
+                    if len(r):
+                        mean[i, j], std[i, j] = r.mean(), r.std()  # population std, as the firmware
+        text = encode_matrix(mean, std)
+        if self.rng.random() < self.faults.truncate_row_probability:
+            lines = text.split(b"\r\n")
+            row = int(self.rng.integers(0, 4))
+            lines[row] = lines[row][: len(lines[row]) // 2]  # TX-FIFO overflow drops the tail
+            text = b"\r\n".join(lines)
+        return text
+
+
+class PansTagDevice:
+    """A PANS tag (scene tag ``tag_index``) ranging to the scene's first 4 anchors."""
+
+    BANNER = (b"\r\n DWM1001 TWR Real Time Location System\r\n\r\n Copyright :  2016-2019 LEAPS and Decawave\r\n"
+              b" License   :  Please visit https://decawave.com/dwm1001_license\r\n"
+              b" Compiled  :  Mar 27 2019 03:35:59\r\n\r\n Help      :  ? or help\r\n\r\n")
+
+    def __init__(self, scene: Scene, tag_index: int, faults: Faults = Faults(), seed: int = 2,
+                 glue_prompt: bool = True):
+        self.scene, self.tag_index, self.faults = scene, tag_index, faults
+        self.rng = np.random.default_rng(seed + tag_index)
+        self.mode = "generic"
+        self.out = bytearray()
+        self._line = b""
+        self._last_cr = -np.inf
+        self._last_command = ""
+        self.streams: set[str] = set()
+        self.update_rate_100ms, self.stationary_100ms = 1, 5
+        self._next_report = 0.0
+        self.glue_prompt = glue_prompt
+        self._glue_next = False
+        self._generic = b""
+
+    # -- input ---------------------------------------------------------------------------------
+    def receive(self, data: bytes, now: float) -> None:
+        if self.faults.hang:
+            return
+        for b in data:
+            if self.mode == "generic":
+                self._generic_byte(bytes([b]), now)
+            else:
+                self._shell_byte(bytes([b]), now)
+
+    def _generic_byte(self, b: bytes, now: float) -> None:
+        if b == b"\r":
+            if now - self._last_cr <= 1.0:  # two Enters within 1 s: shell mode
+                self.mode, self._generic = "shell", b""
+                self.out += self.BANNER + b"dwm> "
+                return
+            self._last_cr = now
+            return
+        self._generic += b
+        buf = self._generic
+        if len(buf) >= 2 and len(buf) >= 2 + buf[1]:
+            self._generic = b""
+            self.out += self._tlv(buf[0], buf[2:2 + buf[1]]) if len(buf) == 2 + buf[1] else b"@\x01\x01"
+        elif len(buf) >= 2 and not 0 < buf[0] < 0x40:  # not a request type we know: text typed in generic mode
+            self._generic = b""
+            self.out += b"@\x01\x01"
+
+    def _shell_byte(self, b: bytes, now: float) -> None:
+        if b in (b"\r", b"\n"):
+            if b == b"\n":
+                return
+            self.out += b"\r\n"
+            command = self._line.decode(errors="replace").strip() or self._last_command
+            self._line = b""
+            self._last_command = command
+            self._execute(command, now)
+            return
+        self._line += b
+        self.out += b  # echo
+
+    def _execute(self, command: str, now: float) -> None:
+        name, *args = command.split() or [""]
+        if name in ("lec", "lep", "les"):
+            self.streams ^= {name}  # toggles
+            self._next_report = now
+            self._glue_next = self.glue_prompt
+            if self._glue_next:
+                self.out += b"dwm> "  # the prompt ends up glued to the first report line
+                return
+        elif name == "quit":
+            self.mode = "generic"
+            return
+        elif name == "reset":
+            self.mode, self.streams = "generic", set()
+            return
+        elif name == "aurs" and len(args) == 2 and all(a.isdigit() for a in args):
+            self.update_rate_100ms, self.stationary_100ms = max(int(args[0]), 1), int(args[1])
+            self.out += b"err code: 0\r\n"
+        elif name == "aurg":
+            self.out += f"err code: 0, upd rate: {self.update_rate_100ms}, {self.stationary_100ms}(stat)\r\n".encode()
+        elif name == "apg":
+            x, y, z = self._position_mm()
+            self.out += f"x:{x} y:{y} z:{z} qf:100\r\n".encode()
+        elif name:
+            self.out += f"{name}: unknown command\r\n".encode()
+        self.out += b"dwm> "
+
+    # -- output --------------------------------------------------------------------------------
+    def poll(self, now: float) -> bytes:
+        if self.faults.hang:
+            self.out.clear()
+            return b""
+        if self.mode == "shell" and self.streams and now >= self._next_report:
+            self._next_report = now + 0.1 * self.update_rate_100ms
+            line = self._report()
+            if self._glue_next:
+                self._glue_next = False
+            self.out += line.encode() + b"\r\n"
+        data, self.out = bytes(self.out), bytearray()
+        return _apply_faults(data, self.faults, self.rng)
+
+    def _ranges(self) -> list[AnchorRange]:
+        anchors = self.scene.anchors_true()[:4]
+        tag = self.scene.tags_true()[self.tag_index]
+        out = []
+        for i, a in enumerate(anchors):
+            d = self.scene.measure(a, tag, 1)[0]
+            if np.isfinite(d):
+                pos = tuple(np.r_[a, np.zeros(3 - len(a))])
+                out.append(AnchorRange(anchor_id4(i), pos, float(d)))
+        return out
+
+    def _position_mm(self) -> tuple[int, int, int]:
+        p = np.r_[self.scene.tags_true()[self.tag_index], 0.0, 0.0][:3]
+        return tuple(int(round(v * 1000)) for v in p)
+
+    def _report(self) -> str:
+        ranges = self._ranges()
+        tag = np.r_[self.scene.tags_true()[self.tag_index], 0.0, 0.0][:3]
+        qf = 100 if len(ranges) >= 4 else (50 if len(ranges) == 3 else None)
+        pos = tag if qf is not None else None
+        if "lec" in self.streams:
+            return format_lec(ranges, pos, qf)
+        if "lep" in self.streams:
+            return f"POS,{tag[0]:.2f},{tag[1]:.2f},{tag[2]:.2f},{qf or 0}"
+        groups = " ".join(f"{r.anchor_id}[{r.position_m[0]:.2f},{r.position_m[1]:.2f},{r.position_m[2]:.2f}]"
+                          f"={r.distance_m:.2f}" for r in ranges)
+        return groups + (f" le_us=2576 est[{tag[0]:.2f},{tag[1]:.2f},{tag[2]:.2f},{qf}]" if qf else "")
+
+    def _tlv(self, type_: int, value: bytes) -> bytes:
+        ok = tlv.encode(tlv.RET_VAL, b"\x00")
+        x, y, z = self._position_mm()
+        pos = tlv.Position(x / 1000, y / 1000, z / 1000, 100)
+        if type_ == tlv.LOC_GET and not value:
+            dists = [tlv.Distance(int(r.anchor_id, 16), r.distance_m, 100, tlv.Position(*r.position_m, 100))
+                     for r in self._ranges()]
+            return tlv.encode_location_tag(pos, dists)
+        if type_ == tlv.POS_GET and not value:
+            return ok + tlv.encode(tlv.POS_XYZ, pos.pack())
+        if type_ == tlv.CFG_GET and not value:
+            return ok + tlv.encode(tlv.CFG, bytes([0x40 | 0x10 | 0x02, 0x00]))  # tag, loc engine, LED, active
+        if type_ == tlv.UPD_RATE_GET and not value:
+            return ok + tlv.encode(tlv.UPD_RATE, int(self.update_rate_100ms).to_bytes(2, "little")
+                                   + int(self.stationary_100ms).to_bytes(2, "little"))
+        if type_ == tlv.UPD_RATE_SET and len(value) == 4:
+            self.update_rate_100ms = max(int.from_bytes(value[:2], "little"), 1)
+            self.stationary_100ms = int.from_bytes(value[2:], "little")
+            return ok
+        return tlv.encode(tlv.RET_VAL, b"\x01")
+
+
+def _apply_faults(data: bytes, faults: Faults, rng: np.random.Generator) -> bytes:
+    if not data:
+        return data
+    if faults.response_delay_s > 0:
+        time.sleep(faults.response_delay_s)
+    if faults.drop_char_probability > 0:
+        keep = rng.random(len(data)) >= faults.drop_char_probability
+        data = bytes(np.frombuffer(data, dtype=np.uint8)[keep])
+    if faults.garbage_probability > 0 and rng.random() < faults.garbage_probability:
+        at = int(rng.integers(0, len(data) + 1))
+        data = data[:at] + rng.integers(0, 256, int(rng.integers(1, 8)), dtype=np.uint8).tobytes() + data[at:]
+    return data
+
+
+# -- ports ----------------------------------------------------------------------------------------
+class PtyPort:
+    """A pseudo-terminal: the device holds the master; ``url`` is the slave's path."""
+
+    def __init__(self):
+        self.master, self.slave = os.openpty()
+        tty.setraw(self.slave)  # no echo, no CR/LF translation: bytes as a UART delivers them
+        self.url = os.ttyname(self.slave)
+
+    def read(self, timeout_s: float) -> bytes:
+        ready, _, _ = select.select([self.master], [], [], timeout_s)
+        return os.read(self.master, 4096) if ready else b""
+
+    def write(self, data: bytes) -> None:
+        os.write(self.master, data)
+
+    def close(self) -> None:
+        for fd in (self.master, self.slave):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+
+
+class SocketPort:
+    """A TCP endpoint on 127.0.0.1 for ``socket://``; ``unplug(s)`` drops the link and refuses
+    connections for ``s`` seconds, like a USB device that disappears and re-enumerates."""
+
+    def __init__(self, port: int = 0):
+        self._server = self._listen(port)
+        self.port = self._server.getsockname()[1]
+        self.url = f"socket://127.0.0.1:{self.port}"
+        self._conn: socket.socket | None = None
+        self._down_until = 0.0
+
+    @staticmethod
+    def _listen(port: int) -> socket.socket:
+        s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        s.bind(("127.0.0.1", port))
+        s.listen(1)
+        s.setblocking(False)
+        return s
+
+    def unplug(self, seconds: float) -> None:
+        self._down_until = time.monotonic() + seconds
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
+        if self._server is not None:
+            self._server.close()
+            self._server = None
+
+    def _accept(self) -> None:
+        if self._server is None:
+            if time.monotonic() < self._down_until:
+                return
+            self._server = self._listen(self.port)
+        try:
+            conn, _ = self._server.accept()
+        except BlockingIOError:
+            return
+        conn.setblocking(False)
+        self._conn = conn
+
+    def read(self, timeout_s: float) -> bytes:
+        if self._conn is None:
+            self._accept()
+            if self._conn is None:
+                time.sleep(timeout_s)
+                return b""
+        ready, _, _ = select.select([self._conn], [], [], timeout_s)
+        if not ready:
+            return b""
+        try:
+            data = self._conn.recv(4096)
+        except OSError:
+            data = b""
+        if not data:  # the client went away
+            self._conn.close()
+            self._conn = None
+        return data
+
+    def write(self, data: bytes) -> None:
+        if self._conn is None or not data:
+            return
+        try:
+            self._conn.sendall(data)
+        except OSError:
+            self._conn.close()
+            self._conn = None
+
+    def close(self) -> None:
+        for s in (self._conn, self._server):
+            if s is not None:
+                s.close()
+
+
+class Emulator:
+    """Serves devices on ports, one thread each; ``with Emulator(...) as emu:``."""
+
+    def __init__(self, scene: Scene, tick_s: float = 0.002):
+        self.scene, self.tick_s = scene, tick_s
+        self.ports: dict[str, object] = {}
+        self._threads: list[threading.Thread] = []
+        self._stop = threading.Event()
+
+    def add(self, name: str, device, port=None) -> str:
+        port = port or PtyPort()
+        self.ports[name] = port
+        t = threading.Thread(target=self._serve, args=(device, port), name=f"emulator {name}", daemon=True)
+        self._threads.append(t)
+        t.start()
+        return port.url
+
+    def _serve(self, device, port) -> None:
+        while not self._stop.is_set():
+            data = port.read(self.tick_s)
+            now = time.monotonic()
+            if data:
+                device.receive(data, now)
+            out = device.poll(now)
+            if out:
+                try:
+                    port.write(out)
+                except OSError:
+                    pass
+
+    def close(self) -> None:
+        self._stop.set()
+        for t in self._threads:
+            t.join(timeout=1.0)
+        for port in self.ports.values():
+            port.close()
+
+    def __enter__(self) -> Emulator:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def standard_setup(scene: Scene, faults: dict[str, Faults] | None = None, transport: str = "pty",
+                   seed: int = 0) -> tuple[Emulator, dict[str, str]]:
+    """One TIERS anchor (``anchor``) and a PANS tag per scene tag (``tag_0`` ...): name -> URL."""
+    faults = faults or {}
+    emu = Emulator(scene)
+    make = (lambda: SocketPort()) if transport == "socket" else (lambda: PtyPort())
+    urls = {"anchor": emu.add("anchor", TiersAnchorDevice(scene, faults.get("anchor", Faults()), seed=seed + 1),
+                              make())}
+    for t in range(scene.config.n_tags):
+        name = f"tag_{t}"
+        urls[name] = emu.add(name, PansTagDevice(scene, t, faults.get(name, Faults()), seed=seed + 2), make())
+    return emu, urls

@@ -1,0 +1,156 @@
+"""Codec of the TIERS autocalibration firmware (the paper's), pure bytes in, messages out.
+
+Host -> anchor ID 1: the single byte ``S`` starts one round (never a line ending: any later
+byte aborts the round). Anchor 1 -> host, per round::
+
+    responder becomes initiator and viceversa\\r\\n
+    R0\\r\\n R1\\r\\n R2\\r\\n R3\\r\\n \\r\\n Waiting for Start order\\r\\n
+
+where ``Rk`` are 16 ``"%d , "`` tokens: for responder j, ``mean_msb, mean_lsb, std_msb,
+std_lsb`` in centimetres (truncated, uint8). Row = initiator ID - 1, column = responder ID - 1.
+A row that is not exactly 16 integers in 0..255 (TX-FIFO overflow drops characters) makes the
+whole matrix rejected, never misread.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+import numpy as np
+
+from uwb_env.hardware.errors import ParseError
+
+START = b"S"
+N_DEVICES = 4  # the firmware hard-wires a 4x4 matrix
+BANNER_INIT = "Singled Sided Two Way Ranging INIT"
+BANNER_RESP = "Singled Sided Two Way Ranging RESP"
+ROLE_SWAP = "responder becomes initiator and viceversa"
+WAITING = "Waiting for Start order"
+_ROW = re.compile(r"^\s*(?:\d{1,3}\s*,\s*){16}$")
+_ROWISH = re.compile(r"^[\s\d,]*\d[\s\d,]*$")  # digits, commas, spaces only: a (maybe broken) row
+
+
+@dataclass(frozen=True)
+class Banner:
+    text: str
+
+
+@dataclass(frozen=True)
+class RoleSwap:
+    pass
+
+
+@dataclass(frozen=True)
+class WaitingForStart:
+    pass
+
+
+@dataclass(frozen=True)
+class RangeMatrixMessage:
+    """One round's matrix: (4, 4) mean and std in metres (diagonal 0)."""
+
+    mean_m: np.ndarray
+    std_m: np.ndarray
+
+    def __eq__(self, other):
+        return (isinstance(other, RangeMatrixMessage) and np.array_equal(self.mean_m, other.mean_m)
+                and np.array_equal(self.std_m, other.std_m))
+
+
+@dataclass(frozen=True)
+class RejectedMatrix:
+    """A matrix that arrived damaged (truncated or malformed row); ``reason`` says how."""
+
+    reason: str
+
+
+@dataclass(frozen=True)
+class OtherLine:
+    text: str
+
+
+def parse_row(line: str) -> np.ndarray:
+    """16 uint8 tokens of one matrix row -> (4, 4) array [responder, (mean_msb, mean_lsb, sd_msb, sd_lsb)]."""
+    if not _ROW.match(line):
+        raise ParseError("TIERS matrix row: expected 16 comma-terminated integers", line)
+    values = [int(tok) for tok in line.replace(" ", "").split(",")[:16]]
+    if max(values) > 255:
+        raise ParseError("TIERS matrix row: value above 255", line)
+    return np.array(values, dtype=np.int64).reshape(N_DEVICES, 4)
+
+
+def decode_cells(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(4, 4, 4) uint8 cells -> mean, std in metres (value = (msb * 256 + lsb) / 100)."""
+    mean = (rows[..., 0] * 256 + rows[..., 1]) / 100.0
+    std = (rows[..., 2] * 256 + rows[..., 3]) / 100.0
+    return mean, std
+
+
+def encode_matrix(mean_m: np.ndarray, std_m: np.ndarray) -> bytes:
+    """The firmware's printout of one matrix (what an emulated anchor 1 writes).
+
+    Centimetres truncated toward zero (C's ``(int)``), msb/lsb stored as uint8 (wraps).
+    """
+    out = []
+    for i in range(N_DEVICES):
+        tokens = []
+        for j in range(N_DEVICES):
+            mean, std = (mean_m[i, j], std_m[i, j]) if i != j else (0.0, 0.0)
+            tokens += [*_c_split(mean), *_c_split(std)]
+        out.append(("" if i == 0 else " ") + "".join(f"{t} , " for t in tokens) + "\r\n")
+    return ("".join(out) + " \r\n Waiting for Start order\r\n").encode()
+
+
+def _c_split(value_m: float) -> tuple[int, int]:
+    """The firmware's ``msb = (int)(v*100/256)``, ``lsb = (int)(v*100) % 256`` in C (truncating
+    division and remainder), stored into uint8."""
+    cm = int(value_m * 100)  # int() truncates toward zero like C's cast
+    msb = int(value_m * 100 / 256)
+    lsb = cm - int(cm / 256) * 256  # C's % keeps the sign of the dividend
+    return msb & 0xFF, lsb & 0xFF
+
+
+class TiersDecoder:
+    """Incremental decoder: ``feed(bytes)`` returns the messages completed by those bytes."""
+
+    def __init__(self) -> None:
+        self._buffer = b""
+        self._rows: list[np.ndarray] = []
+
+    def feed(self, data: bytes) -> list:
+        self._buffer += data
+        *lines, self._buffer = self._buffer.split(b"\n")
+        messages = []
+        for raw in lines:
+            messages.extend(self._line(raw.decode("ascii", errors="replace").replace("\r", "")))
+        return messages
+
+    def _line(self, line: str) -> list:
+        text = line.strip()
+        if not text:
+            return []
+        if _ROWISH.match(text):
+            try:
+                self._rows.append(parse_row(text))
+            except ParseError as err:
+                self._rows = []
+                return [RejectedMatrix(str(err))]
+            if len(self._rows) == N_DEVICES:
+                mean, std = decode_cells(np.stack(self._rows))
+                self._rows = []
+                return [RangeMatrixMessage(mean, std)]
+            return []
+        out = []
+        if self._rows:  # a non-row line interrupted a matrix: it lost rows
+            out.append(RejectedMatrix(f"matrix interrupted after {len(self._rows)} of {N_DEVICES} rows"))
+            self._rows = []
+        if text.startswith("Singled Sided Two Way Ranging"):
+            out.append(Banner(text))
+        elif text == ROLE_SWAP:
+            out.append(RoleSwap())
+        elif text == WAITING:
+            out.append(WaitingForStart())
+        else:
+            out.append(OtherLine(text))
+        return out
