@@ -52,9 +52,11 @@ class LocalizationSystem:
         config: the environment configuration (its ``sim`` part configures the world).
     """
 
-    def __init__(self, config: EnvConfig | None = None, range_model: RangeModel | None = None):
+    def __init__(self, config: EnvConfig | None = None, range_model: RangeModel | None = None, world=None):
         self.config = config or EnvConfig()
-        self.world = World(self.config.sim, range_model)
+        # ``world``: anything with the World interface, e.g. the hardware backend (no truth).
+        self.world = world if world is not None else World(self.config.sim, range_model)
+        self.ground_truth = getattr(self.world, "has_ground_truth", True)
         self.range_model = self.world.range_model
         self.n_anchors = self.config.sim.n_anchors
         self.n_tags = self.config.sim.n_tags
@@ -94,8 +96,11 @@ class LocalizationSystem:
         )
         # The solution describes the robots around the round's midpoint; the solver's frame
         # becomes the estimate frame: est = R (world - origin).
-        true_mid = 0.5 * (true_start + self.world.anchors_true)
-        rot, trans = rigid_align(true_mid, result.positions)
+        if self.ground_truth:
+            true_mid = 0.5 * (true_start + self.world.anchors_true)
+            rot, trans = rigid_align(true_mid, result.positions)
+        else:  # on hardware the first calibration's frame simply is the frame
+            rot, trans = np.eye(dim), np.zeros(dim)
         self.world.set_estimate_frame(rot, -rot.T @ trans)
         odometry_since_mid = (self.world.anchors_est - 0.5 * (est_start + self.world.anchors_est)) @ rot.T
         self._apply_calibration(result, odometry_since_mid)
@@ -155,13 +160,14 @@ class LocalizationSystem:
                            matrix.count)
 
     def _finish_round(self) -> str | None:
-        matrix = self.world.finish_calibration_round().result()
+        finished = self.world.finish_calibration_round()
         solver = self.config.solver
         # Motion compensation: the ranges were taken while the robots moved, so the solution
         # describes them around the round's midpoint. Solve against the mid-round estimates and
         # carry the result to now with the odometry accumulated since then.
         est_mid = 0.5 * (self._est_at_round_start + self.world.anchors_est)
         try:
+            matrix = finished.result()  # on hardware: raises when the round failed
             result = calibrate_anchors(
                 self._corrected(matrix), dim=self.dim, prior=est_mid, gauge=solver.gauge,
                 loss=solver.loss, f_scale=solver.f_scale_sigmas, range_std_m=self.range_std_m,
@@ -195,7 +201,7 @@ class LocalizationSystem:
             return
         raw = self.world.measure_tag_ranges().T  # (tags, anchors)
         # Noise can push a corrected range below zero next to an anchor: a valid reading of ~0.
-        ranges = np.maximum(self.range_model.correct(raw), 0.0)
+        ranges = np.maximum(self.range_model.correct(raw), 0.0)  # the hardware world pre-adjusts per firmware
         solver = self.config.solver
         cov = None
         if solver.use_anchor_covariance:
@@ -288,12 +294,18 @@ class LocalizationSystem:
         return truth
 
     def anchor_errors_m(self, frame: str = "constellation") -> np.ndarray:
-        """Per-anchor error; ``constellation`` (after rigid alignment) or ``fixed`` (first-calibration frame)."""
+        """Per-anchor error; ``constellation`` (after rigid alignment) or ``fixed`` (first-calibration frame).
+        NaN without ground truth (hardware)."""
+        if not self.ground_truth:
+            return np.full(self.n_anchors, np.nan)
         return self._cached(("anchor", frame), lambda: np.linalg.norm(
             self.world.anchors_est - self._truth(self.world.anchors_true, frame), axis=1))
 
     def tag_errors_m(self, frame: str = "constellation") -> np.ndarray:
         """Per-tag error of the current fix (held fixes keep aging); capped at ``error_cap_m``."""
+        if not self.ground_truth:
+            return np.full(self.n_tags, np.nan)
+
         def compute():
             err = np.linalg.norm(self.tag_fix - self._truth(self.world.tags_true, frame), axis=1)
             return np.minimum(np.where(np.isfinite(err), err, self.config.error_cap_m), self.config.error_cap_m)
@@ -312,6 +324,8 @@ class LocalizationSystem:
     def rotation_error_rad(self) -> float:
         """Paper Fig. 5: angle between the estimated and true direction anchor 0 -> anchor 1
         (in the fixed frame of the first calibration)."""
+        if not self.ground_truth:
+            return float("nan")
         truth = self.world.to_estimate_frame(self.world.anchors_true[:2])
         est = self.world.anchors_est[:2]
         a, b = est[1] - est[0], truth[1] - truth[0]
@@ -319,8 +333,15 @@ class LocalizationSystem:
 
     def reward_terms(self, report: StepReport) -> dict[str, float]:
         cfg = self.config
-        tag = float(self.tag_errors_m().mean()) if self.n_tags else 0.0
-        anchor = float(np.minimum(self.anchor_errors_m(), cfg.error_cap_m).mean())
+        if self.ground_truth:
+            tag = float(self.tag_errors_m().mean()) if self.n_tags else 0.0
+            anchor = float(np.minimum(self.anchor_errors_m(), cfg.error_cap_m).mean())
+        else:
+            # Residual proxy (no truth on hardware): the tag fixes' RMS residual since the last
+            # calibration stands for the tag error, the predicted std for the anchor error.
+            filled = min(self._hist_index, cfg.residual_window_steps)
+            tag = float(self._tag_residual_hist[:filled].mean()) if filled else 0.0
+            anchor = float(np.sqrt(self.predicted_anchor_var_m2()).mean())
         return {
             "tag_error": -cfg.tag_error_weight * tag,
             "anchor_error": -cfg.anchor_error_weight * anchor,

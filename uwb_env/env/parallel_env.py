@@ -51,9 +51,13 @@ paper's rules) runs during ``reset`` and defines the localization frame.
 Truncation after ``max_cycles`` steps. There is no terminal state (termination stays False).
 
 ## Arguments
-``uwb_env.parallel_env(config=None, render_mode=None, **overrides)``: ``config`` an
-:class:`~uwb_env.config.EnvConfig` or dict; keyword overrides merge into it (unknown keys
-raise :class:`~uwb_env.config.ConfigError`).
+``uwb_env.parallel_env(config=None, render_mode=None, backend=None, **overrides)``: ``config``
+an :class:`~uwb_env.config.EnvConfig` or dict; keyword overrides merge into it (unknown keys
+raise :class:`~uwb_env.config.ConfigError`). ``backend``: a
+:class:`~uwb_env.hardware.backend.HardwareWorld` to run on real (or emulated) DWM1001 devices
+(see ``uwb_env.hardware.connect``): then there is no ground truth (truth-based ``infos`` are
+NaN, ``infos[a]["ground_truth"]`` is False), the reward's tag/anchor terms become the
+residual proxy, steps run in wall-clock time, and ``env.deterministic`` is False.
 
 ## Version history
 v0: initial release.
@@ -88,13 +92,17 @@ class UWBCalibrationParallelEnv(ParallelEnv, EzPickle):
     metadata = {"render_modes": ["human", "rgb_array"], "name": "uwb_calibration_v0", "is_parallelizable": True,
                 "render_fps": 10}
 
-    def __init__(self, config: EnvConfig | dict | None = None, render_mode: str | None = None, **overrides: Any):
-        EzPickle.__init__(self, config, render_mode, **overrides)
+    def __init__(self, config: EnvConfig | dict | None = None, render_mode: str | None = None, backend=None,
+                 **overrides: Any):
+        EzPickle.__init__(self, config, render_mode, backend, **overrides)
         self.config = make_config(config, overrides)
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode={render_mode!r}: must be one of {self.metadata['render_modes']}")
         self.render_mode = render_mode
-        self.system = LocalizationSystem(self.config)
+        self.system = LocalizationSystem(self.config, world=backend)
+        # On hardware there is no ground truth and no reproducibility across runs.
+        self.ground_truth = self.system.ground_truth
+        self.deterministic = backend is None
         n = self.config.sim.n_anchors
         self.possible_agents = [f"anchor_{i}" for i in range(n)]
         self.agents: list[str] = []
@@ -212,6 +220,9 @@ class UWBCalibrationParallelEnv(ParallelEnv, EzPickle):
             "calibration_failed": report.calibration_failed if report else None,
             "requests_ignored": report.requests_ignored if report else 0,
             "reward_terms": terms,
+            # False on hardware: the truth-based keys above are NaN and the reward's tag and
+            # anchor terms are the residual proxy (see LocalizationSystem.reward_terms).
+            "ground_truth": s.ground_truth,
         }
         return {a: {**shared, "anchor_error_m": float(anchor_err[i])} for i, a in enumerate(self.agents)}
 

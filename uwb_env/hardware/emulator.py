@@ -80,11 +80,15 @@ class Scene:
         with self.lock:
             return self.world.tags_true.copy()
 
-    def measure(self, a: np.ndarray, b: np.ndarray, k: int) -> np.ndarray:
-        """k raw (biased, noisy) ranges between points a and b, NaN for dropouts."""
+    def measure(self, a: np.ndarray, b: np.ndarray, k: int, unbiased: bool = False) -> np.ndarray:
+        """k noisy ranges between points a and b (NaN for dropouts): with the fitted SS-TWR
+        slope/offset bias of the TIERS firmware, or ``unbiased`` like antenna-delay calibrated
+        stock PANS firmware."""
         d = np.full(k, float(np.linalg.norm(np.asarray(a) - np.asarray(b))))
         with self.lock:
-            return self.world.range_model.measure(d, self.rng)
+            model = self.world.range_model
+            raw = model.measure(d, self.rng)
+            return np.maximum(model.correct(raw), 0.0) if unbiased else raw
 
 
 def anchor_id4(index: int) -> str:
@@ -260,7 +264,7 @@ class PansTagDevice:
         tag = self.scene.tags_true()[self.tag_index]
         out = []
         for i, a in enumerate(anchors):
-            d = self.scene.measure(a, tag, 1)[0]
+            d = self.scene.measure(a, tag, 1, unbiased=True)[0]
             if np.isfinite(d):
                 pos = tuple(np.r_[a, np.zeros(3 - len(a))])
                 out.append(AnchorRange(anchor_id4(i), pos, float(d)))
@@ -353,6 +357,7 @@ class SocketPort:
         self.url = f"socket://127.0.0.1:{self.port}"
         self._conn: socket.socket | None = None
         self._down_until = 0.0
+        self._pending_unplug: float | None = None
 
     @staticmethod
     def _listen(port: int) -> socket.socket:
@@ -364,6 +369,10 @@ class SocketPort:
         return s
 
     def unplug(self, seconds: float) -> None:
+        """Thread-safe: the serving thread carries it out at its next read."""
+        self._pending_unplug = seconds
+
+    def _do_unplug(self, seconds: float) -> None:
         self._down_until = time.monotonic() + seconds
         if self._conn is not None:
             self._conn.close()
@@ -385,6 +394,9 @@ class SocketPort:
         self._conn = conn
 
     def read(self, timeout_s: float) -> bytes:
+        if self._pending_unplug is not None:
+            self._do_unplug(self._pending_unplug)
+            self._pending_unplug = None
         if self._conn is None:
             self._accept()
             if self._conn is None:

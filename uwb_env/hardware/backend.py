@@ -1,0 +1,227 @@
+"""The hardware ranging backend: the simulator's World interface on real (or emulated) devices.
+
+:class:`HardwareWorld` is what :class:`~uwb_env.system.LocalizationSystem` steps instead of
+the simulated world: calibration rounds send the TIERS start byte and wait for the real
+matrix; tag ranges come from the tags' ``lec`` streams; anchor motion comes from a
+user-supplied odometry source (a callable returning each anchor's displacement since the
+last call) or the anchors are declared static. There is no ground truth: ``anchors_true`` and
+``tags_true`` are NaN, so truth-based metrics are NaN and the env uses its residual proxy.
+It runs in wall-clock time (each step waits for the next ``dt_s`` tick) and is not
+deterministic.
+
+Range bias: the range model's slope/offset correction applies per firmware, configurable in
+:class:`HardwareConfig` (the TIERS SS-TWR firmware has the measured +0.36 m bias; stock PANS
+is usually antenna-delay calibrated).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from uwb_env.config import ConfigBase, SimConfig
+from uwb_env.hardware.drivers import PansShellTagDriver, RoundFailed, TiersAnchorDriver
+from uwb_env.hardware.emulator import anchor_id4
+from uwb_env.localization.errors import LocalizationError
+from uwb_env.measurements import RangeMatrix
+from uwb_env.sim.calibration_round import RoundTiming
+from uwb_env.sim.odometry import OdometryModel
+from uwb_env.sim.ranging import RangeModel
+
+
+@dataclass(frozen=True)
+class HardwareConfig(ConfigBase):
+    tiers_correct_bias: bool = True
+    pans_correct_bias: bool = False
+    round_timeout_s: float = 4.0
+    tag_range_max_age_s: float = 0.5  # older lec reports count as missing
+    realtime: bool = True  # wait for each dt_s tick (False: step as fast as called, e.g. replay)
+
+    def __post_init__(self) -> None:
+        self._positive("round_timeout_s", "tag_range_max_age_s")
+
+
+class CalibrationFailed(LocalizationError):
+    """A hardware round produced no usable matrix (the env reports it and keeps odometry)."""
+
+
+class HardwareRound:
+    """A round running on the devices; the same surface as the simulator's round."""
+
+    def __init__(self, start_time_s: float, expected_s: float, n: int):
+        self.start_time_s = start_time_s
+        self.end_time_s = start_time_s + expected_s
+        self.expected_s = expected_s
+        idx = np.arange(n)
+        self.initiator, self.responder = np.repeat(idx, n - 1), np.array([j for i in idx for j in idx if j != i])
+        self.done = False
+        self.matrix: RangeMatrix | None = None
+        self.error: str | None = None
+        self.elapsed_s = 0.0
+
+    @property
+    def progress(self) -> float:
+        return 1.0 if self.done else min(self.elapsed_s / self.expected_s, 0.99)
+
+    def result(self) -> RangeMatrix:
+        if self.matrix is None:
+            raise CalibrationFailed(self.error or "round failed")
+        return self.matrix
+
+
+class HardwareWorld:
+    """See the module docstring. ``tags`` are shell drivers (one per tag) in anchor-ID order
+    ``anchor_ids`` (the ID4 labels the tags report for anchors 0..N-1)."""
+
+    has_ground_truth = False
+
+    def __init__(self, config: SimConfig, anchor: TiersAnchorDriver, tags: list[PansShellTagDriver],
+                 hardware: HardwareConfig | None = None, anchor_ids: list[str] | None = None,
+                 odometry_source: Callable[[float], np.ndarray] | None = None,
+                 move_callback: Callable[[np.ndarray, np.ndarray, np.ndarray], None] | None = None,
+                 range_model: RangeModel | None = None):
+        if config.n_anchors != 4:
+            raise ValueError(f"n_anchors={config.n_anchors!r}: the TIERS firmware calibrates exactly 4 anchors")
+        if len(tags) != config.n_tags:
+            raise ValueError(f"tags: {len(tags)} drivers for n_tags={config.n_tags}")
+        self.config = config
+        self.hardware = hardware or HardwareConfig()
+        self.anchor, self.tags = anchor, tags
+        self.anchor_ids = anchor_ids or [anchor_id4(i) for i in range(config.n_anchors)]
+        self.range_model = range_model or RangeModel(config.ranging)
+        self.timing = RoundTiming.fit(config.calibration)
+        self.odometry = OdometryModel(config.odometry)  # its variance model predicts the drift
+        self.odometry_source = odometry_source
+        self.motion = _MotionCommands(move_callback)
+        self.dt_s = config.dt_s
+        self.round: HardwareRound | None = None
+        self.frame_rotation, self.frame_origin = np.eye(config.dim), np.zeros(config.dim)
+        nan = np.full((config.n_anchors, config.dim), np.nan)
+        self.anchors_true, self.tags_true = nan, np.full((config.n_tags, config.dim), np.nan)
+
+    # -- lifecycle -----------------------------------------------------------------------------
+    def reset(self, rng: np.random.Generator) -> None:
+        self.rng = rng
+        self.time_s, self.step_count = 0.0, 0
+        self.anchors_est = np.zeros((self.config.n_anchors, self.config.dim))
+        self.odometry.reset(self.config.n_anchors, rng)
+        self.round = None
+        for tag in self.tags:
+            tag.start_lec()
+        self._t0 = time.monotonic()
+
+    def step(self) -> None:
+        if self.hardware.realtime:
+            wait = self._t0 + (self.step_count + 1) * self.dt_s - time.monotonic()
+            if wait > 0:
+                time.sleep(wait)
+        if self.odometry_source is not None:
+            self.anchors_est += np.asarray(self.odometry_source(self.dt_s), dtype=float)
+        self.step_count += 1
+        self.time_s = self.step_count * self.dt_s
+        for tag in self.tags:
+            tag.poll()
+        if self.round is not None and not self.round.done:
+            self._poll_round()
+
+    def _poll_round(self) -> None:
+        rnd = self.round
+        rnd.elapsed_s = self.time_s - rnd.start_time_s
+        try:
+            message = self.anchor.poll()
+        except RoundFailed as err:
+            rnd.done, rnd.error = True, str(err)
+            return
+        if message is not None:
+            rnd.done = True
+            valid = message.mean_m > 0
+            np.fill_diagonal(valid, False)
+            k = self.config.calibration.measurements_per_pair
+            rnd.matrix = RangeMatrix(np.where(valid, message.mean_m, np.nan), np.where(valid, message.std_m, np.nan),
+                                     np.where(valid, k, 0))
+
+    # -- the World interface -------------------------------------------------------------------
+    def set_estimate_frame(self, rotation: np.ndarray, origin: np.ndarray) -> None:
+        self.frame_rotation, self.frame_origin = rotation, origin
+
+    def to_estimate_frame(self, points_world: np.ndarray) -> np.ndarray:
+        return np.full_like(points_world, np.nan)  # no truth to express
+
+    def measure_tag_ranges(self) -> np.ndarray:
+        """(n_anchors, n_tags) latest ``lec`` ranges (NaN: missing or older than the age limit)."""
+        out = np.full((self.config.n_anchors, self.config.n_tags), np.nan)
+        now = time.monotonic()
+        for t, tag in enumerate(self.tags):
+            report = tag.latest
+            if report is None or now - tag.latest_time > self.hardware.tag_range_max_age_s:
+                continue
+            for r in report.ranges:
+                if r.anchor_id in self.anchor_ids:
+                    out[self.anchor_ids.index(r.anchor_id), t] = r.distance_m
+        if not self.hardware.pans_correct_bias:
+            out = self._undo_correction(out)
+        return out
+
+    def start_calibration_round(self, measurements_per_pair: int | None = None) -> HardwareRound:
+        k = measurements_per_pair or self.config.calibration.measurements_per_pair
+        self.round = HardwareRound(self.time_s, self.timing.duration_s(self.config.n_anchors, k),
+                                   self.config.n_anchors)
+        self.anchor.start_round()
+        return self.round
+
+    def finish_calibration_round(self) -> HardwareRound:
+        if self.round is None or not self.round.done:
+            raise RuntimeError("no finished calibration round to collect")
+        finished, self.round = self.round, None
+        if finished.matrix is not None and not self.hardware.tiers_correct_bias:
+            m = finished.matrix
+            finished.matrix = RangeMatrix(self._undo_correction(m.mean_m), m.std_m, m.count)
+        return finished
+
+    def run_calibration_round(self, measurements_per_pair: int | None = None):
+        self.start_calibration_round(measurements_per_pair)
+        steps = 0
+        while not self.round.done:
+            self.step()
+            steps += 1
+        return self.finish_calibration_round().result(), steps
+
+    def _undo_correction(self, ranges: np.ndarray) -> np.ndarray:
+        # The system corrects every range with the fitted model; for firmware whose ranges are
+        # already unbiased, hand it the values that its correction maps back to themselves.
+        fit = self.range_model.fit
+        return fit.slope * ranges + fit.offset_m
+
+    def close(self) -> None:
+        for transport in {self.anchor.transport, *(t.transport for t in self.tags)}:
+            transport.close()
+
+
+class _MotionCommands:
+    """``calibrate_and_move`` on hardware: commands go to the user's robots via a callback."""
+
+    def __init__(self, callback):
+        self.callback = callback
+
+    def command(self, rows: np.ndarray, headings: np.ndarray, speeds: np.ndarray) -> None:
+        if self.callback is None:
+            raise NotImplementedError("action_mode='calibrate_and_move' on hardware needs a move_callback "
+                                      "that drives the robots")
+        self.callback(rows, headings, speeds)
+
+
+def connect(config: SimConfig, anchor_url: str, tag_urls: list[str], hardware: HardwareConfig | None = None,
+            recorder=None, odometry_source=None, move_callback=None, shell_pace_s: float = 0.0) -> HardwareWorld:
+    """Open the ports (recording every byte when ``recorder`` is given) and build the backend.
+
+    ``anchor_url``: TIERS anchor ID 1; ``tag_urls``: one PANS tag per simulated tag slot.
+    """
+    from uwb_env.hardware.transport import SerialTransport
+
+    hardware = hardware or HardwareConfig()
+    anchor = TiersAnchorDriver(SerialTransport(anchor_url, recorder=recorder), hardware.round_timeout_s)
+    tags = [PansShellTagDriver(SerialTransport(url, recorder=recorder), pace_s=shell_pace_s) for url in tag_urls]
+    return HardwareWorld(config, anchor, tags, hardware, odometry_source=odometry_source, move_callback=move_callback)
