@@ -25,3 +25,9 @@ def test_help_lists_every_command(capsys):
     out = capsys.readouterr().out
     for command in ("simulate", "evaluate", "train"):
         assert command in out
+
+
+def test_emulate_prints_the_port_names(capsys):
+    assert main(["emulate", "--duration", "0.3"]) == 0
+    out = capsys.readouterr().out
+    assert "anchor" in out and "/dev/pts/" in out and "tag_2" in out

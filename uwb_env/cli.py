@@ -76,11 +76,52 @@ def _train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _emulate_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--config", default=None, help="YAML/JSON file with SimConfig overrides (the emulated scene)")
+    p.add_argument("--socket", action="store_true", help="serve socket://127.0.0.1:PORT instead of ptys")
+    p.add_argument("--duration", type=float, default=None, help="seconds to run (default: until Ctrl-C)")
+    p.add_argument("--hang-anchor", action="store_true", help="fault: the TIERS anchor never answers")
+    p.add_argument("--truncate-rows", type=float, default=0.0, help="fault: probability a matrix row is cut")
+    p.add_argument("--garbage", type=float, default=0.0, help="fault: probability of garbage bytes per chunk")
+    p.add_argument("--drop-chars", type=float, default=0.0, help="fault: probability per dropped character")
+    p.add_argument("--delay", type=float, default=0.0, help="fault: extra response latency (s)")
+
+
+def _emulate(args: argparse.Namespace) -> int:
+    import time
+
+    from uwb_env.config import SimConfig
+    from uwb_env.hardware.emulator import Faults, Scene, standard_setup
+
+    common = dict(garbage_probability=args.garbage, drop_char_probability=args.drop_chars,
+                  response_delay_s=args.delay)
+    scene = Scene(SimConfig.from_dict(load_overrides(args.config)), seed=args.seed)
+    faults = {"anchor": Faults(hang=args.hang_anchor, truncate_row_probability=args.truncate_rows, **common)}
+    faults |= {f"tag_{i}": Faults(**common) for i in range(scene.config.n_tags)}
+    emu, urls = standard_setup(scene, faults, transport="socket" if args.socket else "pty", seed=args.seed)
+    print("Emulated DWM1001 devices (115200 8N1):")
+    print(f"  {'anchor':8s} {urls['anchor']:32s} TIERS autocalibration firmware, anchor ID 1 (send b'S')")
+    for name, url in urls.items():
+        if name != "anchor":
+            print(f"  {name:8s} {url:32s} PANS tag (generic TLV mode; two \\r for the shell)")
+    print("Ctrl-C stops.", flush=True)
+    try:
+        with emu:
+            deadline = None if args.duration is None else time.monotonic() + args.duration
+            while deadline is None or time.monotonic() < deadline:
+                time.sleep(0.1)
+    except KeyboardInterrupt:
+        pass
+    return 0
+
+
 # name -> (add arguments, handler, help)
 COMMANDS = {
     "simulate": (_simulate_args, _simulate, "run the simulator and print a drift/ranging summary"),
     "evaluate": (_evaluate_args, _evaluate, "compare calibration schedulers over held-out seeds"),
     "train": (_train_args, _train, "train a scheduler with stable-baselines3 (PPO/A2C/DQN)"),
+    "emulate": (_emulate_args, _emulate, "serve emulated DWM1001 devices on pseudo-terminals or sockets"),
 }
 
 

@@ -9,8 +9,10 @@ announced count is not trusted), and a command sent in generic mode answers ``@\
 
 from __future__ import annotations
 
+import operator
 import re
 from dataclasses import dataclass
+from typing import NamedTuple
 
 from uwb_env.hardware.errors import ParseError
 
@@ -25,8 +27,7 @@ _LES = re.compile(rf"([0-9A-Fa-f]{{4}})\[({_NUM}),({_NUM}),({_NUM})(?:,\d+)?\]=(
 _EST = re.compile(rf"est\[({_NUM}),({_NUM}),({_NUM}),(\d+)\]")
 
 
-@dataclass(frozen=True)
-class AnchorRange:
+class AnchorRange(NamedTuple):
     """One anchor seen by a tag: its 16-bit ID (hex), position and distance (m)."""
 
     anchor_id: str
@@ -34,8 +35,7 @@ class AnchorRange:
     distance_m: float
 
 
-@dataclass(frozen=True)
-class LocationReport:
+class LocationReport(NamedTuple):
     """A ``lec``/``les`` line (ranges, optional position) or a ``lep`` line (position only)."""
 
     ranges: tuple[AnchorRange, ...]
@@ -59,12 +59,55 @@ class TextLine:
     text: str
 
 
+_FLOAT = r"(-?\d+(?:\.\d+)?)"
+_LEC_BY_COUNT: dict[int, tuple[re.Pattern, operator.itemgetter]] = {}
+
+
+def _lec_pattern(n: int) -> tuple[re.Pattern, operator.itemgetter]:
+    # One compiled pattern per anchor count matches a whole well-formed line in C; the getter
+    # picks its numeric groups (every group but the IDs).
+    if n not in _LEC_BY_COUNT:
+        groups = "".join(f",AN{i},([0-9A-Fa-f]{{4}}),{_FLOAT},{_FLOAT},{_FLOAT},{_FLOAT}" for i in range(n))
+        pattern = re.compile(rf"DIST,{n}{groups}(?:,POS,{_FLOAT},{_FLOAT},{_FLOAT},(\d+))?\s*")
+        _LEC_BY_COUNT[n] = pattern, operator.itemgetter(*[j for j in range(5 * n) if j % 5], 5 * n)
+    return _LEC_BY_COUNT[n]
+
+
+def _lec_fast(body: str) -> LocationReport | None:
+    """A well-formed line in one regex match (the common case); None sends it to the group-by-group path."""
+    comma = body.find(",", 5)
+    count = body[5:comma]
+    if not count.isdigit() or int(count) > 15:
+        return None
+    n = int(count)
+    if n == 0:
+        return None
+    pattern, numeric = _lec_pattern(n)
+    m = pattern.fullmatch(body)
+    if m is None:
+        return None
+    g = m.groups()
+    ids = g[0:5 * n:5]
+    if len(set(ids)) != n:
+        return None
+    v = list(map(float, numeric(g)[:-1]))
+    ranges = tuple(AnchorRange(ids[i].upper(), (v[4 * i], v[4 * i + 1], v[4 * i + 2]), v[4 * i + 3])
+                   for i in range(n))
+    if g[5 * n] is None:
+        return LocationReport(ranges, None, None, "lec")
+    return LocationReport(ranges, (float(g[5 * n]), float(g[5 * n + 1]), float(g[5 * n + 2])), int(g[5 * n + 3]),
+                          "lec")
+
+
 def parse_lec(line: str) -> LocationReport:
     """A ``DIST,n,AN0,...`` line (anywhere in ``line``) -> its valid anchor groups and position."""
     start = line.find("DIST,")
     if start < 0:
         raise ParseError("lec line: no 'DIST,'", line)
     body = line[start:]
+    fast = _lec_fast(body)
+    if fast is not None:
+        return fast
     if not _DIST.match(body):
         raise ParseError("lec line: bad DIST count", line)
     seen: dict[str, AnchorRange] = {}
@@ -117,7 +160,22 @@ class ShellDecoder:
         self._buffer = b""
 
     def feed(self, data: bytes) -> list:
-        self._buffer += data
+        *lines, rest = (self._buffer + data).split(b"\n")
+        out = []
+        for line in lines:
+            if PROMPT in line or GENERIC_ERROR in line:
+                self._buffer = line + b"\n"
+                out.extend(self._tokens())
+            else:
+                out.extend(self._chunk(line.decode("ascii", errors="replace").replace("\r", "")))
+        self._buffer = rest
+        if PROMPT in rest or GENERIC_ERROR in rest:
+            out.extend(self._tokens())
+        return out
+
+    def _tokens(self) -> list:
+        """Split the buffer at newlines, prompts and generic-mode errors (prompts have no
+        newline after them); what follows the last token stays buffered."""
         out = []
         while True:
             # The prompt has no newline: it ends a chunk on its own.
