@@ -25,6 +25,12 @@ def _learned(path: str, dt_s: float):
     return LearnedPolicy.load(path)
 
 
+def _rllib(path: str, dt_s: float):
+    from agents.learned_rllib import RLlibPolicy
+
+    return RLlibPolicy.load(path)
+
+
 # name -> (factory(parameter string or None, dt_s), parameter meaning)
 POLICIES: dict[str, tuple[Callable, str]] = {
     "fixed": (lambda p, dt: FixedIntervalPolicy(interval_steps=int(p or 10)), "interval in steps (default 10)"),
@@ -36,7 +42,8 @@ POLICIES: dict[str, tuple[Callable, str]] = {
     "always": (lambda p, dt: AlwaysPolicy(), "-"),
     "random": (lambda p, dt: RandomPolicy(float(p or 0.05)), "request probability per step"),
     "oracle": (lambda p, dt: OraclePolicy(float(p or 0.3)), "true mean anchor error threshold (m); GROUND TRUTH"),
-    "learned": (lambda p, dt: _learned(p, dt), "path of a saved model (.zip)"),
+    "learned": (lambda p, dt: _learned(p, dt), "path of a saved SB3 model (.zip)"),
+    "rllib": (lambda p, dt: _rllib(p, dt), "path of an RLlib checkpoint folder"),
 }
 
 
@@ -49,8 +56,8 @@ def make_policy(spec: str, dt_s: float = 0.2):
     name, _, param = spec.partition(":")
     if name not in POLICIES:
         raise PolicySpecError(f"policy={spec!r}: unknown name {name!r}; known: {', '.join(POLICIES)}")
-    if name == "learned" and not param:
-        raise PolicySpecError(f"policy={spec!r}: 'learned' needs a model path, e.g. learned:model.zip")
+    if name in ("learned", "rllib") and not param:
+        raise PolicySpecError(f"policy={spec!r}: {name!r} needs a model path, e.g. learned:model.zip")
     try:
         return POLICIES[name][0](param or None, dt_s)
     except (TypeError, ValueError) as err:

@@ -70,7 +70,12 @@ def main() -> None:
                        vec_env="dummy" if dummy >= subproc else "subproc", checkpoint_freq=50_000,
                        eval_freq=50_000, eval_episodes=4, progress_bar=False, max_wall_s=budget)
     record = train.main(targs)
-    model = out / "model.zip"
+    # Model selection on the validation seeds (never the evaluation seeds): the EvalCallback's
+    # best checkpoint when it beat the final model there.
+    best = out / "best" / "best_model.zip"
+    use_best = best.exists() and record.get("best_eval_mean_reward", -1e18) > record.get("last_eval_mean_reward",
+                                                                                          -1e18)
+    model = best if use_best else out / "model.zip"
 
     eargs = evaluate.Args(policies=[f"learned:{model}", "fixed:10", "threshold:0.15", "residual:0.2", "oracle:0.3"],
                           seeds=seeds, max_cycles=500, sweep=True, workers=2,
@@ -114,6 +119,7 @@ def main() -> None:
         "oracle_calibrations_per_min": rows["oracle:0.3"]["calibrations_per_min"],
         "paper_fixed_10_mean_tag_error_m": rows["fixed:10"]["mean_tag_error_m"],
         "training_wall_s": record["training_wall_s"],
+        "model_selected": "best_on_validation" if use_best else "final",
         "training_env_steps": record["num_timesteps"],
         "dummy_vec_env_steps_per_s": dummy,
         "subproc_vec_env_steps_per_s": subproc,
@@ -122,11 +128,12 @@ def main() -> None:
     }
     if not a.quick:
         write_results("bench_scheduling", figures, quick=False)
-        size = sum(f.stat().st_size for f in (model, out / "vecnormalize.pkl", out / "run.json"))
-        if size < 5_000_000:
+        files = {"model.zip": model, "vecnormalize.pkl": model.with_name("vecnormalize.pkl"),
+                 "run.json": model.with_name("run.json")}
+        if sum(f.stat().st_size for f in files.values()) < 5_000_000:
             (MODEL_DIR / "ppo_scheduler").mkdir(parents=True, exist_ok=True)
-            for name in ("model.zip", "vecnormalize.pkl", "run.json"):
-                shutil.copy(out / name, MODEL_DIR / "ppo_scheduler" / name)
+            for name, src in files.items():
+                shutil.copy(src, MODEL_DIR / "ppo_scheduler" / name)
     else:
         write_results("bench_scheduling_quick", figures, quick=True)
 

@@ -11,7 +11,7 @@ from uwb_env.cli import main as cli_main
 
 def test_registry_builds_every_baseline_and_rejects_bad_specs():
     for name in POLICIES:
-        if name != "learned":
+        if name not in ("learned", "rllib"):
             assert make_policy(name).act is not None
     assert make_policy("fixed:7").interval_steps == 7
     assert make_policy("fixed_s:1.0", dt_s=0.2).interval_steps == 5

@@ -37,6 +37,9 @@ def test_short_run_writes_model_checkpoint_logs_and_resumes(tmp_path, short_epis
     assert latest_checkpoint(out / "checkpoints")[1] == 256
     assert any((out / "tb").rglob("events.out.tfevents*"))
     assert (out / "eval" / "evaluations.npz").is_file()
+    # the best model (by the validation EvalCallback) is loadable like the final one
+    assert (out / "best" / "vecnormalize.pkl").is_file() and (out / "best" / "run.json").is_file()
+    assert LearnedPolicy.load(out / "best" / "best_model.zip").kind == "scheduler"
     saved = json.loads((out / "run.json").read_text())
     assert saved["hyperparams"]["n_steps"] == 64 and saved["env_config"]["max_cycles"] == 40
 

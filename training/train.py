@@ -23,6 +23,7 @@ import argparse
 import functools
 import json
 import re
+import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -60,6 +61,7 @@ class Args:
     tensorboard: bool = True
     resume: bool = True
     """continue from the newest checkpoint in ``out/checkpoints`` if there is one"""
+    torch_threads: int = 1
     max_wall_s: float | None = None
     """stop training after this many seconds (the model is saved as usual)"""
     verbose: int = 0
@@ -138,9 +140,13 @@ def main(args: Args) -> dict:
 
     _check(args)
     hp = load_hyperparams(args)
+    import torch
+
+    torch.set_num_threads(args.torch_threads)  # small MLPs: threads cost more than they give
     env_config = EnvConfig.from_dict(load_overrides(args.env_config)).to_dict()
     n_envs = int(hp.pop("n_envs", 1))
     normalize = bool(hp.pop("normalize", False))
+    norm_reward = bool(hp.pop("norm_reward", False))
     policy = hp.pop("policy", "MlpPolicy")
     out = Path(args.out)
     ckpt_dir = out / "checkpoints"
@@ -155,7 +161,7 @@ def main(args: Args) -> dict:
         if stats is not None and stats.exists():
             venv = VecNormalize.load(str(stats), venv)
         else:
-            venv = VecNormalize(venv, norm_obs=True, norm_reward=False)
+            venv = VecNormalize(venv, norm_obs=True, norm_reward=norm_reward)
         eval_env = VecNormalize(eval_env, norm_obs=True, norm_reward=False, training=False)
     tb = str(out / "tb") if args.tensorboard and _has_tensorboard() else None
     if resume:
@@ -186,7 +192,7 @@ def main(args: Args) -> dict:
         venv.save(str(out / "vecnormalize.pkl"))
     record = {
         "algo": args.algo, "env": args.env, "env_id": ENV_IDS[args.env], "args": asdict(args),
-        "hyperparams": {**hp, "n_envs": n_envs, "normalize": normalize, "policy": policy},
+        "hyperparams": {**hp, "n_envs": n_envs, "normalize": normalize, "norm_reward": norm_reward, "policy": policy},
         "env_config": env_config, "num_timesteps": int(model.num_timesteps),
         "resumed_from_steps": resume[1] if resume else 0, "training_wall_s": wall,
         "env_steps_per_s": (model.num_timesteps - (resume[1] if resume else 0)) / max(wall, 1e-9),
@@ -195,10 +201,28 @@ def main(args: Args) -> dict:
     if evals and evals[0].evaluations_results:
         record["last_eval_mean_reward"] = float(evals[0].last_mean_reward)
         record["best_eval_mean_reward"] = float(evals[0].best_mean_reward)
+        means = [float(sum(r) / len(r)) for r in evals[0].evaluations_results]
+        record["best_eval_timesteps"] = int(evals[0].evaluations_timesteps[means.index(max(means))])
     (out / "run.json").write_text(json.dumps(record, indent=1, default=str))
+    _complete_best_model(out, ckpt_dir, record, normalize)
     venv.close()
     eval_env.close()
     return record
+
+
+def _complete_best_model(out: Path, ckpt_dir: Path, record: dict, normalize: bool) -> None:
+    """Make ``best/`` loadable like the final model: the run record, and the observation
+    statistics the EvalCallback used (the checkpoint's at or before the best evaluation)."""
+    best = out / "best" / "best_model.zip"
+    if not best.exists() or "best_eval_timesteps" not in record:
+        return
+    (out / "best" / "run.json").write_text(json.dumps(record, indent=1, default=str))
+    if normalize:
+        stats = sorted((int(m.group(1)), p) for p in ckpt_dir.glob("model_vecnormalize_*_steps.pkl")
+                       if (m := re.fullmatch(r"model_vecnormalize_(\d+)_steps\.pkl", p.name))
+                       and int(m.group(1)) <= record["best_eval_timesteps"])
+        if stats:
+            shutil.copy(stats[-1][1], out / "best" / "vecnormalize.pkl")
 
 
 def _synced_eval(eval_env, **kwargs):

@@ -207,10 +207,13 @@ class LocalizationSystem:
         if solver.use_anchor_covariance:
             drift_var = self.predicted_anchor_var_m2() - self.calibration_var_m2  # isotropic drift part
             cov = self.anchor_cov + (drift_var / self.dim)[:, None, None] * np.eye(self.dim)
+        # Stale anchors raise every residual; only a residual well beyond what their predicted
+        # error explains suggests a fix stuck in a wrong minimum (worth a cold restart).
+        restart_m = solver.tag_restart_residual_m + 2.0 * float(np.sqrt(self.predicted_anchor_var_m2().max()))
         fix = locate_tags(
             self.world.anchors_est, ranges, self.range_std_m, anchor_covariance=cov, loss=solver.loss,
             f_scale=solver.f_scale_sigmas, initial=self.tag_fix, max_iterations=solver.tag_iterations,
-            with_covariance=False, restart_residual_m=solver.tag_restart_residual_m,
+            with_covariance=False, restart_residual_m=restart_m,
         )
         ok = fix.ok
         dt = self.world.dt_s
