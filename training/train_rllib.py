@@ -119,18 +119,19 @@ def main(args: Args) -> dict:
     if args.resume and (checkpoint / "rllib_checkpoint.json").exists():
         algo.restore_from_path(str(checkpoint))
         resumed = int(json.loads((out / "run.json").read_text()).get("iterations_done", 0))
-    start, history, steps_before = time.perf_counter(), [], _env_steps(algo)
+    start, history = time.perf_counter(), []
+    steps_before = steps = int(json.loads((out / "run.json").read_text()).get("num_timesteps", 0)) if resumed else 0
     iterations_done = resumed
     for _ in range(max(args.iterations - resumed, 0)):
         result = algo.train()
         iterations_done += 1
         history.append(_metrics(result))
+        steps = _env_steps(result, steps)
         if iterations_done % args.checkpoint_every == 0 or iterations_done == args.iterations:
             algo.save_to_path(str(checkpoint))
     wall = time.perf_counter() - start
     if not (checkpoint / "rllib_checkpoint.json").exists():
         algo.save_to_path(str(checkpoint))
-    steps = _env_steps(algo)
     record = {
         "algo": "rllib_ppo", "env": "parallel", "env_id": ENV_ID, "args": asdict(args), "hyperparams": hp,
         "env_config": env_config, "policy": args.policy, "iterations_done": iterations_done,
@@ -143,10 +144,12 @@ def main(args: Args) -> dict:
     return record
 
 
-def _env_steps(algo) -> int:
-    from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
-
-    return int(algo.metrics.peek(NUM_ENV_STEPS_SAMPLED_LIFETIME, default=0)) if hasattr(algo, "metrics") else 0
+def _env_steps(result: dict, previous: int) -> int:
+    for source in (result, result.get("env_runners", {})):
+        value = source.get("num_env_steps_sampled_lifetime")
+        if value:
+            return int(value)
+    return previous
 
 
 def _metrics(result: dict) -> dict:

@@ -59,10 +59,31 @@ def _evaluate(args: argparse.Namespace) -> int:
 def _train_args(p: argparse.ArgumentParser) -> None:
     from training.train import add_arguments
 
+    p.add_argument("--backend", choices=("sb3", "rllib"), default="sb3",
+                   help="sb3 (default) or rllib (Ray; see `python -m training.train_rllib --help` for its options)")
     add_arguments(p)
+    p.add_argument("--iterations", type=int, default=20, help="rllib: training iterations")
+    p.add_argument("--address", default=None, help="rllib: Ray cluster address (default: a local instance)")
+    p.add_argument("--num-env-runners", type=int, default=1, help="rllib: sampling workers")
 
 
 def _train(args: argparse.Namespace) -> int:
+    if args.backend == "rllib":
+        try:
+            import ray  # noqa: F401
+
+            from training.train_rllib import Args, main
+        except ImportError:
+            print("uwb-env train --backend rllib: needs the 'cluster' extra: pip install 'uwb-env[cluster]'",
+                  file=sys.stderr)
+            return 2
+        out = args.out if args.out != "runs/train" else "runs/rllib"
+        record = main(Args(iterations=args.iterations, out=out, seed=args.seed, address=args.address,
+                           num_env_runners=args.num_env_runners, hp=args.hp, env_config=args.env_config,
+                           resume=args.resume))
+        print(json.dumps({k: record[k] for k in ("iterations_done", "num_timesteps", "training_wall_s")}, indent=1))
+        print(f"checkpoint: {out}/checkpoint  (evaluate: uwb-env evaluate --policies rllib:{out}/checkpoint fixed:10)")
+        return 0
     try:
         import stable_baselines3  # noqa: F401
 
