@@ -200,3 +200,18 @@ def test_other_messages_are_typed():
     msgs = TiersDecoder().feed(b"hello\r\nresponder becomes initiator and viceversa\r\n")
     assert isinstance(msgs[1], RoleSwap) and msgs[0].text == "hello"
     assert RangeMatrixMessage(np.zeros((4, 4)), np.zeros((4, 4))) != RejectedMatrix("x")
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.tuples(st.floats(-99, 99), st.floats(-99, 99), st.floats(-9, 9), st.floats(0, 99)),
+                min_size=1, max_size=4),
+       st.booleans())
+def test_lec_fast_path_agrees_with_the_group_parser(values, with_pos):
+    from uwb_env.hardware.pans_shell import _lec_by_groups, _lec_fast
+
+    ranges = [AnchorRange(f"{0x1150 + i:04X}", (round(x, 2), round(y, 2), round(z, 2)), round(d, 2))
+              for i, (x, y, z, d) in enumerate(values)]
+    line = format_lec(ranges, (1.0, -2.0, 0.5) if with_pos else None, 77 if with_pos else None)
+    fast = _lec_fast(line)
+    assert fast is not None and fast == _lec_by_groups(line, line)
+    assert [r.anchor_id for r in fast.ranges] == [r.anchor_id for r in ranges]

@@ -9,6 +9,7 @@ announced count is not trusted), and a command sent in generic mode answers ``@\
 
 from __future__ import annotations
 
+import math
 import operator
 import re
 from dataclasses import dataclass
@@ -59,44 +60,53 @@ class TextLine:
     text: str
 
 
-_FLOAT = r"(-?\d+(?:\.\d+)?)"
-_LEC_BY_COUNT: dict[int, tuple[re.Pattern, operator.itemgetter]] = {}
+_HEX = frozenset("0123456789abcdefABCDEF")
+_LEC_LAYOUT: dict[int, tuple] = {}
 
 
-def _lec_pattern(n: int) -> tuple[re.Pattern, operator.itemgetter]:
-    # One compiled pattern per anchor count matches a whole well-formed line in C; the getter
-    # picks its numeric groups (every group but the IDs).
-    if n not in _LEC_BY_COUNT:
-        groups = "".join(f",AN{i},([0-9A-Fa-f]{{4}}),{_FLOAT},{_FLOAT},{_FLOAT},{_FLOAT}" for i in range(n))
-        pattern = re.compile(rf"DIST,{n}{groups}(?:,POS,{_FLOAT},{_FLOAT},{_FLOAT},(\d+))?\s*")
-        _LEC_BY_COUNT[n] = pattern, operator.itemgetter(*[j for j in range(5 * n) if j % 5], 5 * n)
-    return _LEC_BY_COUNT[n]
+def _lec_layout(n: int) -> tuple:
+    # Per anchor count: the expected AN labels and getters for the label, ID and number fields,
+    # so a well-formed line is checked and converted with a few C-level calls.
+    if n not in _LEC_LAYOUT:
+        labels = tuple(f"AN{i}" for i in range(n))
+        label_at = [2 + 6 * i for i in range(n)]
+        nums = [k + j for k in label_at for j in range(2, 6)]
+        _LEC_LAYOUT[n] = (labels, operator.itemgetter(*label_at), operator.itemgetter(*[k + 1 for k in label_at]),
+                          operator.itemgetter(*nums))
+    return _LEC_LAYOUT[n]
 
 
 def _lec_fast(body: str) -> LocationReport | None:
-    """A well-formed line in one regex match (the common case); None sends it to the group-by-group path."""
-    comma = body.find(",", 5)
-    count = body[5:comma]
-    if not count.isdigit() or int(count) > 15:
+    """A well-formed line by field positions (the common case); None sends it to the regexes."""
+    f = body.rstrip().split(",")
+    count = f[1] if len(f) > 1 else ""
+    if not count.isdigit() or not 0 < int(count) <= 15:
         return None
     n = int(count)
-    if n == 0:
+    pos_at = 2 + 6 * n
+    if len(f) == pos_at + 5:
+        if f[pos_at] != "POS" or not f[-1].isdigit():
+            return None
+    elif len(f) != pos_at:
         return None
-    pattern, numeric = _lec_pattern(n)
-    m = pattern.fullmatch(body)
-    if m is None:
+    labels, get_labels, get_ids, get_nums = _lec_layout(n)
+    found = get_labels(f)
+    ids = get_ids(f)
+    if n == 1:
+        found, ids = (found,), (ids,)
+    joined = "".join(ids)
+    if found != labels or len(joined) != 4 * n or not _HEX.issuperset(joined) or len(set(ids)) != n:
         return None
-    g = m.groups()
-    ids = g[0:5 * n:5]
-    if len(set(ids)) != n:
+    try:
+        v = list(map(float, get_nums(f)))
+        pos = (float(f[pos_at + 1]), float(f[pos_at + 2]), float(f[pos_at + 3])) if len(f) > pos_at else None
+    except ValueError:
         return None
-    v = list(map(float, numeric(g)[:-1]))
-    ranges = tuple(AnchorRange(ids[i].upper(), (v[4 * i], v[4 * i + 1], v[4 * i + 2]), v[4 * i + 3])
-                   for i in range(n))
-    if g[5 * n] is None:
-        return LocationReport(ranges, None, None, "lec")
-    return LocationReport(ranges, (float(g[5 * n]), float(g[5 * n + 1]), float(g[5 * n + 2])), int(g[5 * n + 3]),
-                          "lec")
+    if not math.isfinite(sum(v) + (sum(pos) if pos else 0.0)):
+        return None
+    ranges = tuple([AnchorRange(ids[i].upper(), (v[4 * i], v[4 * i + 1], v[4 * i + 2]), v[4 * i + 3])
+                    for i in range(n)])
+    return LocationReport(ranges, pos, int(f[-1]) if pos else None, "lec")
 
 
 def parse_lec(line: str) -> LocationReport:
@@ -106,8 +116,11 @@ def parse_lec(line: str) -> LocationReport:
         raise ParseError("lec line: no 'DIST,'", line)
     body = line[start:]
     fast = _lec_fast(body)
-    if fast is not None:
-        return fast
+    return fast if fast is not None else _lec_by_groups(line, body)
+
+
+def _lec_by_groups(line: str, body: str) -> LocationReport:
+    """The tolerant path: every valid ``AN`` group anywhere, duplicates dropped."""
     if not _DIST.match(body):
         raise ParseError("lec line: bad DIST count", line)
     seen: dict[str, AnchorRange] = {}
@@ -160,14 +173,22 @@ class ShellDecoder:
         self._buffer = b""
 
     def feed(self, data: bytes) -> list:
-        *lines, rest = (self._buffer + data).split(b"\n")
+        buffer = self._buffer + data
+        cut = buffer.rfind(b"\n")
+        complete, rest = (buffer[:cut], buffer[cut + 1:]) if cut >= 0 else (b"", buffer)
         out = []
-        for line in lines:
-            if PROMPT in line or GENERIC_ERROR in line:
-                self._buffer = line + b"\n"
-                out.extend(self._tokens())
-            else:
-                out.extend(self._chunk(line.decode("ascii", errors="replace").replace("\r", "")))
+        if complete and PROMPT not in complete and GENERIC_ERROR not in complete:
+            # the streaming case: decode once, then line by line
+            chunk = self._chunk
+            for line in complete.decode("ascii", errors="replace").replace("\r", "").split("\n"):
+                out.extend(chunk(line))
+        elif complete:
+            for line in complete.split(b"\n"):
+                if PROMPT in line or GENERIC_ERROR in line:
+                    self._buffer = line + b"\n"
+                    out.extend(self._tokens())
+                else:
+                    out.extend(self._chunk(line.decode("ascii", errors="replace").replace("\r", "")))
         self._buffer = rest
         if PROMPT in rest or GENERIC_ERROR in rest:
             out.extend(self._tokens())
