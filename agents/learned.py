@@ -41,7 +41,8 @@ class LearnedPolicy:
         if stats.exists():
             with open(stats, "rb") as f:
                 normalizer = pickle.load(f)  # a VecNormalize without its venv: normalize_obs works
-        return cls(model, record["env"], normalizer, deterministic)
+        kind = "scheduler" if record["env"] == "batched" else record["env"]  # same observations
+        return cls(model, kind, normalizer, deterministic)
 
     def reset(self, seed: int | None = None) -> None:
         pass

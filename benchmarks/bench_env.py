@@ -32,6 +32,36 @@ def env_rate(seconds: float, **kwargs) -> float:
     return rate(lambda: env.step(idle), seconds, batch=200)
 
 
+def batched_rate(seconds: float, copies: int, interval: int | None = None) -> float:
+    """Copy-steps/s of the numpy-batched scheduler env (``interval``: calibrate every k steps)."""
+    from uwb_env.env.vector_env import CalibrationSchedulingVectorEnv
+
+    venv = CalibrationSchedulingVectorEnv(copies, max_cycles=10**9)
+    venv.reset(seed=0)
+    idle, request = np.zeros(copies, dtype=int), np.ones(copies, dtype=int)
+    t = [0]
+
+    def step():
+        t[0] += 1
+        venv.step(request if interval and t[0] % interval == 0 else idle)
+
+    return copies * rate(step, seconds, batch=20)
+
+
+def scheduler_env_rate(seconds: float, interval: int | None = None) -> float:
+    import gymnasium as gym
+
+    env = gym.make("uwb_env/CalibrationScheduling-v0", max_cycles=10**9)
+    env.reset(seed=0)
+    t = [0]
+
+    def step():
+        t[0] += 1
+        env.step(int(bool(interval and t[0] % interval == 0)))
+
+    return rate(step, seconds, batch=100)
+
+
 def sim_rate(seconds: float) -> float:
     return sim_step_rate(SimConfig(), seconds)
 
@@ -69,6 +99,19 @@ def main(argv=None) -> dict:
                  ["ParallelEnv.step without tags", fig["env_steps_per_s_no_tags"],
                   fig["env_steps_per_s_no_tags"] / fig["sim_steps_per_s"]],
                  ["reference: bare simulator step", fig["sim_steps_per_s"], 1.0]])
+    single = scheduler_env_rate(seconds)
+    single_cal = scheduler_env_rate(seconds, interval=10)
+    rows = [["single scheduler env (gymnasium.make)", 1, single, 1.0],
+            ["single scheduler env, calibrating every 10 steps", 1, single_cal, 1.0]]
+    fig["scheduler_env_steps_per_s"], fig["scheduler_env_steps_per_s_fixed10"] = single, single_cal
+    for copies in (16, 64):
+        r = batched_rate(seconds, copies)
+        rc = batched_rate(seconds, copies, interval=10)
+        fig[f"batched_steps_per_s_{copies}"], fig[f"batched_steps_per_s_{copies}_fixed10"] = r, rc
+        rows += [[f"batched vector env, {copies} copies", copies, r, r / single],
+                 [f"batched vector env, {copies} copies, calibrating every 10 steps", copies, rc, rc / single_cal]]
+    print_table("Batched mode: copy-steps/s of CalibrationSchedulingVectorEnv vs the single env",
+                ["what", "copies", "steps/s", "speed-up"], rows)
     rows = []
     for n in (4, 8, 16):
         ms = calibration_step_ms(n, repeats)

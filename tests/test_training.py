@@ -100,3 +100,13 @@ def test_bad_arguments_are_named(tmp_path):
         load_hyperparams(Args(hp=["lr"]))
     with pytest.raises(FileNotFoundError, match="nope.zip"):
         LearnedPolicy.load(tmp_path / "nope.zip")
+
+
+def test_batched_training_mode(tmp_path, short_episodes):
+    out = tmp_path / "batched"
+    record = main(_args(out, env="batched", env_config=short_episodes, eval_freq=0,
+                        hp=["n_envs=8", "n_steps=32", "batch_size=64", "n_epochs=1"]))
+    assert record["num_timesteps"] == 256
+    policy = LearnedPolicy.load(out / "model.zip")
+    assert policy.kind == "scheduler"  # same observations as the single scheduler env
+    assert rollout(parallel_env(max_cycles=10), policy, seed=0).steps == 10

@@ -31,7 +31,9 @@ from pathlib import Path
 import yaml
 
 ALGOS = ("ppo", "a2c", "dqn")
-ENV_IDS = {"scheduler": "uwb_env/CalibrationScheduling-v0", "parallel": "uwb_env/Parallel-v0"}
+# "batched": the scheduler task, with all training copies stepped together in numpy
+ENV_IDS = {"scheduler": "uwb_env/CalibrationScheduling-v0", "parallel": "uwb_env/Parallel-v0",
+           "batched": "uwb_env/CalibrationScheduling-v0"}
 VALIDATION_SEED_BASE = 500_000
 HYPERPARAMS_DIR = Path(__file__).with_name("hyperparams")
 
@@ -100,6 +102,12 @@ def make_vec_env(kind: str, n_envs: int, env_config: dict, seed: int, vec_env: s
 
     import uwb_env  # noqa: F401  (registers the Gymnasium id)
 
+    if kind == "batched":
+        from training.vec_env import BatchedSchedulerVecEnv
+
+        venv = BatchedSchedulerVecEnv(n_envs, env_config)
+        venv.seed(seed)
+        return VecMonitor(venv)
     if kind == "scheduler":
         fns = [functools.partial(_make_scheduler_env, env_config) for _ in range(n_envs)]
         venv = SubprocVecEnv(fns) if vec_env == "subproc" and n_envs > 1 else DummyVecEnv(fns)
@@ -154,7 +162,8 @@ def main(args: Args) -> dict:
     algo_cls = {"ppo": sb3.PPO, "a2c": sb3.A2C, "dqn": sb3.DQN}[args.algo]
 
     venv = make_vec_env(args.env, n_envs, env_config, args.seed, args.vec_env)
-    eval_env = make_vec_env(args.env, 1, env_config, VALIDATION_SEED_BASE)
+    # validation on the single env (the batched mode has the same observations and reward)
+    eval_env = make_vec_env("scheduler" if args.env == "batched" else args.env, 1, env_config, VALIDATION_SEED_BASE)
     resume = latest_checkpoint(ckpt_dir) if args.resume else None
     if normalize:
         stats = ckpt_dir / f"model_vecnormalize_{resume[1]}_steps.pkl" if resume else None

@@ -94,3 +94,50 @@ class ParallelEnvVecEnv(VecEnv):
     def _store(self, k: int, obs: dict[str, np.ndarray]) -> None:
         for j, agent in enumerate(self.agents):
             self._obs[k * self.n_agents + j] = obs[agent]
+
+
+class BatchedSchedulerVecEnv(VecEnv):
+    """SB3 ``VecEnv`` over :class:`uwb_env.batch.BatchedSystem`: ``num_envs`` scheduler copies
+    stepped together in numpy. All copies truncate together; SB3 gets ``dones`` with
+    ``TimeLimit.truncated`` and ``terminal_observation``, then the reset observations."""
+
+    def __init__(self, num_envs: int, env_config: dict | None = None):
+        from uwb_env.env.vector_env import CalibrationSchedulingVectorEnv
+
+        self.venv = CalibrationSchedulingVectorEnv(num_envs, config=env_config)
+        super().__init__(num_envs, self.venv.single_observation_space, self.venv.single_action_space)
+        self._actions = None
+
+    def reset(self):
+        obs, _ = self.venv.reset(seed=self._seeds[0])
+        self._reset_seeds()
+        self._reset_options()
+        return obs
+
+    def step_async(self, actions: np.ndarray) -> None:
+        self._actions = np.asarray(actions).reshape(self.num_envs)
+
+    def step_wait(self):
+        obs, rewards, terms, truncs, info = self.venv.step(self._actions)
+        dones = terms | truncs
+        infos = [{"mean_tag_error_m": float(info["mean_tag_error_m"][i])} for i in range(self.num_envs)]
+        if dones.any():
+            for i in range(self.num_envs):
+                infos[i]["TimeLimit.truncated"] = bool(truncs[i] and not terms[i])
+                infos[i]["terminal_observation"] = info["final_obs"][i]
+        return obs, rewards.astype(np.float32), dones, infos
+
+    def close(self) -> None:
+        pass
+
+    def get_attr(self, attr_name: str, indices=None) -> list[Any]:
+        return [getattr(self.venv, attr_name) for _ in self._get_indices(indices)]
+
+    def set_attr(self, attr_name: str, value: Any, indices=None) -> None:
+        setattr(self.venv, attr_name, value)
+
+    def env_method(self, method_name: str, *method_args, indices=None, **method_kwargs) -> list[Any]:
+        raise NotImplementedError("the batched env has no per-copy env objects")
+
+    def env_is_wrapped(self, wrapper_class, indices=None) -> list[bool]:
+        return [False for _ in self._get_indices(indices)]

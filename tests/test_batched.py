@@ -1,0 +1,76 @@
+import numpy as np
+import pytest
+
+from agents.baselines import FixedIntervalPolicy
+from uwb_env import parallel_env
+from uwb_env.batch import BatchedSystem
+from uwb_env.config import EnvConfig
+from uwb_env.env.policy import rollout
+from uwb_env.env.vector_env import CalibrationSchedulingVectorEnv
+
+
+def test_batched_statistics_match_the_single_env():
+    cfg = EnvConfig.from_dict({"max_cycles": 200})
+    venv = CalibrationSchedulingVectorEnv(24, config=cfg)
+    venv.reset(seed=0)
+    tag, anchor, busy, count = [], [], [], []
+    for t in range(200):
+        _, _, _, _, info = venv.step(np.full(24, int((t + 1) % 10 == 0)))
+        tag.append(info["mean_tag_error_m"])
+        anchor.append(info["mean_anchor_error_m"])
+        busy.append(info["calibrating_fraction"])
+    single = [rollout(parallel_env(config=cfg), FixedIntervalPolicy(10), seed=s) for s in range(12)]
+    s_tag = np.mean([r.tag_error_m.mean() for r in single])
+    s_anchor = np.mean([r.anchor_error_m.mean() for r in single])
+    assert np.mean(busy) == pytest.approx(np.mean([r.calibrating.mean() for r in single]), abs=1e-9)
+    assert np.mean(anchor) == pytest.approx(s_anchor, rel=0.2)
+    assert np.median(np.concatenate(tag)) == pytest.approx(np.median([np.median(r.tag_error_m) for r in single]),
+                                                          rel=0.25)
+    assert 0.5 < np.mean(tag) / s_tag < 2.0
+    # never calibrating: the anchors drift far more than with calibrations
+    venv.reset(seed=1)
+    for _ in range(100):
+        _, _, _, _, info = venv.step(np.zeros(24, dtype=int))
+    assert info["mean_anchor_error_m"].mean() > 2 * np.mean(anchor)
+
+
+def test_vector_env_spaces_autoreset_and_seeding():
+    venv = CalibrationSchedulingVectorEnv(4, max_cycles=6)
+    obs, _ = venv.reset(seed=3)
+    assert obs.dtype == np.float32 and venv.observation_space.contains(obs)
+    for t in range(6):
+        obs, reward, term, trunc, info = venv.step(np.array([0, 1, 0, 1]))
+        assert venv.observation_space.contains(obs) and reward.shape == (4,) and not term.any()
+    assert trunc.all() and "final_obs" in info and venv.observation_space.contains(info["final_obs"])
+    assert info["round_started"].dtype == bool
+    a = CalibrationSchedulingVectorEnv(3, max_cycles=20)
+    b = CalibrationSchedulingVectorEnv(3, max_cycles=20)
+    oa, _ = a.reset(seed=9)
+    ob, _ = b.reset(seed=9)
+    for t in range(15):
+        act = np.array([t % 7 == 0, 0, 1])
+        oa, ra, *_ = a.step(act)
+        ob, rb, *_ = b.step(act)
+    np.testing.assert_array_equal(oa, ob)
+    np.testing.assert_array_equal(ra, rb)
+    with pytest.raises(ValueError, match="expected 3 values"):
+        a.step(np.array([0, 2, 1]))
+
+
+def test_batched_mode_rejects_3d():
+    with pytest.raises(ValueError, match="2D only"):
+        BatchedSystem(EnvConfig.from_dict({"sim": {"dim": 3}}), 2)
+
+
+def test_sb3_adapter_reports_truncation():
+    pytest.importorskip("stable_baselines3")
+    from training.vec_env import BatchedSchedulerVecEnv
+
+    venv = BatchedSchedulerVecEnv(5, {"max_cycles": 4})
+    venv.seed(0)
+    obs = venv.reset()
+    assert obs.shape == (5, venv.observation_space.shape[0])
+    for _ in range(4):
+        obs, rewards, dones, infos = venv.step(np.zeros(5, dtype=int))
+    assert dones.all() and all(i["TimeLimit.truncated"] for i in infos)
+    assert all(venv.observation_space.contains(i["terminal_observation"]) for i in infos)

@@ -1,0 +1,339 @@
+"""Many copies of the scheduling task stepped together in numpy (the batched mode).
+
+:class:`BatchedSystem` runs B copies of :class:`~uwb_env.system.LocalizationSystem`'s
+dynamics with one decision per copy (the centralized scheduler): one motion kernel moves the
+robots of all copies, one odometry model drifts all anchors, one Gauss-Newton call fixes the
+tags of all copies (each tag against its own copy's anchors), and features, errors and
+rewards are computed for all copies at once. Only calibration rounds are handled per copy
+(they are rare and each needs its own least-squares solve), with the same round simulation,
+motion compensation and solver as the single env.
+
+Differences from the single env, by design: 2D only; episodes of all copies start and end
+together (same ``max_cycles``); a tracked tag stuck in a wrong minimum is re-solved per copy
+only when its residual exceeds the restart threshold (as in the single env); one generator
+drives the batch (same seed, same batch). Statistics match the single env's (tested).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from uwb_env.config import EnvConfig
+from uwb_env.localization import calibrate_anchors, locate_tags, rigid_align
+from uwb_env.localization.errors import LocalizationError
+from uwb_env.localization.robust import irls_weights
+from uwb_env.measurements import RangeMatrix
+from uwb_env.sim import World
+from uwb_env.sim.calibration_round import CalibrationRound
+from uwb_env.sim.motion import MotionModel
+from uwb_env.sim.odometry import OdometryModel
+from uwb_env.system import OBS_FIELDS, LocalizationSystem
+
+
+class BatchedSystem:
+    def __init__(self, config: EnvConfig | None, n_copies: int):
+        self.config = config or EnvConfig()
+        sim = self.config.sim
+        if sim.dim != 2:
+            raise ValueError(f"sim.dim={sim.dim!r}: the batched mode is 2D only")
+        if n_copies < 1:
+            raise ValueError(f"n_copies={n_copies!r}: must be >= 1")
+        self.B, self.N, self.M = n_copies, sim.n_anchors, sim.n_tags
+        self._template = LocalizationSystem(self.config)  # feature bounds, range model, timing
+        self.range_model = self._template.range_model
+        self.range_std_m = self._template.range_std_m
+        self.timing = self._template.world.timing
+        self.dt_s = sim.dt_s
+        self.motion = MotionModel([(sim.anchor_motion, self.B * self.N), (sim.tag_motion, self.B * self.M)],
+                                  sim.area_size_m)
+        self.odometry = OdometryModel(sim.odometry)
+        self.obs_low, self.obs_high = self._template.feature_bounds()
+        self.obs_size = 2 + len(OBS_FIELDS)
+
+    # -- views into the motion state ---------------------------------------------------------------
+    @property
+    def anchors_true(self) -> np.ndarray:
+        return self.motion.positions[: self.B * self.N].reshape(self.B, self.N, 2)
+
+    @property
+    def tags_true(self) -> np.ndarray:
+        return self.motion.positions[self.B * self.N:].reshape(self.B, self.M, 2)
+
+    # -- lifecycle ---------------------------------------------------------------------------------
+    def reset(self, rng: np.random.Generator) -> None:
+        cfg, B, N, M = self.config, self.B, self.N, self.M
+        self.rng = rng
+        placer = World(cfg.sim, self.range_model)
+        anchors, tags = [], []
+        for _ in range(B):
+            a = placer._initial_anchors(rng)
+            anchors.append(a)
+            tags.append(placer._initial_tags(a, rng))
+        self.motion.reset(np.vstack(anchors + tags), rng)
+        self.odometry.reset(B * N, rng)
+        self.time_s, self.step_count = 0.0, 0
+        self.anchors_est = self.anchors_true.copy()
+        self.frame_rot = np.tile(np.eye(2), (B, 1, 1))
+        self.frame_origin = np.zeros((B, 2))
+        self.rounds: list[CalibrationRound | None] = [None] * B
+        self.est_at_round_start = np.zeros((B, N, 2))
+        self.calibration_count = np.zeros(B, dtype=int)
+        self.time_calibrating_s = np.zeros(B)
+        self.time_since_calibration_s = np.zeros((B, N))
+        self.distance_since_calibration_m = np.zeros((B, N))
+        self.steps_since_calibration = np.zeros((B, N))
+        self.calibration_var_m2 = np.zeros((B, N))
+        self.anchor_cov = np.zeros((B, N, 2, 2))
+        self.last_calibration_rms_m = np.zeros(B)
+        self.tag_fix = np.full((B, M, 2), np.nan)
+        self.tag_velocity = np.zeros((B, M, 2))
+        w = cfg.residual_window_steps
+        self._tag_res = np.zeros((B, w))
+        self._anchor_res = np.zeros((B, w, N))
+        self._hist = np.zeros(B, dtype=int)
+        # First calibration of every copy (paper rules), robots moving meanwhile.
+        true_start, est_start = self.anchors_true.copy(), self.anchors_est.copy()
+        for k in range(B):
+            self._start_round(k)
+        while any(r is not None and not r.done for r in self.rounds):
+            self._advance_world()
+        true_mid = 0.5 * (true_start + self.anchors_true)
+        for k in range(B):
+            result = calibrate_anchors(
+                self._corrected(self.rounds[k].result()), dim=2, loss=cfg.solver.loss,
+                f_scale=cfg.solver.f_scale_sigmas, range_std_m=self.range_std_m)
+            rot, trans = rigid_align(true_mid[k], result.positions)
+            self.frame_rot[k], self.frame_origin[k] = rot, -rot.T @ trans
+            since_mid = (self.anchors_est[k] - 0.5 * (est_start[k] + self.anchors_est[k])) @ rot.T
+            self._apply(k, result, since_mid)
+            self.rounds[k] = None
+        self._fix_tags(np.ones(B, dtype=bool), cold=True)
+
+    def step(self, requests: np.ndarray) -> dict[str, np.ndarray]:
+        """Advance every copy by ``dt_s``; ``requests`` (B,) bool start rounds where none runs."""
+        B = self.B
+        requests = np.asarray(requests, dtype=bool).reshape(B)
+        running = np.array([r is not None for r in self.rounds])
+        started = requests & ~running
+        for k in np.flatnonzero(started):
+            self._start_round(k)
+        t0 = self.time_s
+        before = self.anchors_est.copy()
+        self._advance_world()
+        moved = np.linalg.norm(self.anchors_est - before, axis=2)
+        self.distance_since_calibration_m += moved
+        self.steps_since_calibration += 1
+        self.time_since_calibration_s += self.dt_s
+        busy = np.zeros(B)
+        finished = np.zeros(B, dtype=bool)
+        failed = np.zeros(B, dtype=bool)
+        for k, rnd in enumerate(self.rounds):
+            if rnd is None:
+                continue
+            busy[k] = (min(rnd.end_time_s, self.time_s) - max(rnd.start_time_s, t0)) / self.dt_s
+            if rnd.done:
+                finished[k] = True
+                failed[k] = not self._finish_round(k)
+        self.time_calibrating_s += busy * self.dt_s
+        in_round = np.array([r is not None for r in self.rounds]) | finished
+        # tags hold during rounds (and on the step a round ends, like the single env)
+        hold = in_round
+        if self.config.tag_fallback == "predict":
+            self.tag_fix[hold] += self.tag_velocity[hold] * self.dt_s
+        self._fix_tags(~hold)
+        return {"round_started": started, "round_finished": finished & ~failed, "calibration_failed": failed,
+                "calibrating_fraction": busy}
+
+    # -- world ---------------------------------------------------------------------------------------
+    def _advance_world(self) -> None:
+        B, N = self.B, self.N
+        running = [k for k, r in enumerate(self.rounds) if r is not None and not r.done]
+        before = self.anchors_true.copy() if running else None
+        delta, turn = self.motion.step(self.dt_s, self.rng)
+        odo = self.odometry.estimated_displacement(delta[: B * N], turn[: B * N], self.dt_s, self.rng)
+        self.anchors_est += np.einsum("bnj,bij->bni", odo.reshape(B, N, 2), self.frame_rot)
+        t0 = self.time_s
+        self.step_count += 1
+        self.time_s = self.step_count * self.dt_s
+        after = self.anchors_true
+        for k in running:
+            self.rounds[k].advance(t0, self.time_s, before[k], after[k], self.range_model, self.rng)
+
+    def _start_round(self, k: int) -> None:
+        k_pairs = self.config.sim.calibration.measurements_per_pair
+        self.rounds[k] = CalibrationRound(self.N, self.timing, k_pairs, self.time_s)
+        self.est_at_round_start[k] = self.anchors_est[k]
+
+    def _corrected(self, matrix: RangeMatrix) -> RangeMatrix:
+        return RangeMatrix(self.range_model.correct(matrix.mean_m), self.range_model.correct_std(matrix.std_m),
+                           matrix.count)
+
+    def _finish_round(self, k: int) -> bool:
+        rnd, self.rounds[k] = self.rounds[k], None
+        solver = self.config.solver
+        est_mid = 0.5 * (self.est_at_round_start[k] + self.anchors_est[k])
+        try:
+            result = calibrate_anchors(self._corrected(rnd.result()), dim=2, prior=est_mid, gauge=solver.gauge,
+                                       loss=solver.loss, f_scale=solver.f_scale_sigmas, range_std_m=self.range_std_m)
+        except LocalizationError:
+            return False
+        self._apply(k, result, self.anchors_est[k] - est_mid)
+        return True
+
+    def _apply(self, k: int, result, since_mid: np.ndarray) -> None:
+        self.anchors_est[k] = result.positions + since_mid
+        self.anchor_cov[k] = result.anchor_covariance()
+        self.calibration_var_m2[k] = np.trace(self.anchor_cov[k], axis1=1, axis2=2)
+        self.last_calibration_rms_m[k] = result.rms_residual_m
+        self.calibration_count[k] += 1
+        self.time_since_calibration_s[k] = 0.0
+        self.distance_since_calibration_m[k] = 0.0
+        self.steps_since_calibration[k] = 0
+        self._hist[k] = 0
+
+    # -- tags --------------------------------------------------------------------------------------
+    def predicted_anchor_var_m2(self) -> np.ndarray:
+        drift = self.odometry.expected_error_var_m2(self.distance_since_calibration_m, self.steps_since_calibration, 2)
+        return self.calibration_var_m2 + drift
+
+    def _fix_tags(self, copies: np.ndarray, cold: bool = False) -> None:
+        if self.M == 0 or not copies.any():
+            return
+        B, N, M = self.B, self.N, self.M
+        d = np.linalg.norm(self.anchors_true[:, :, None, :] - self.tags_true[:, None, :, :], axis=-1)  # (B,N,M)
+        raw = self.range_model.measure(d, self.rng)
+        ranges = np.maximum(self.range_model.correct(raw), 0.0).transpose(0, 2, 1)  # (B,M,N)
+        solver = self.config.solver
+        pred_var = self.predicted_anchor_var_m2()
+        cov = None
+        if solver.use_anchor_covariance:
+            drift = (pred_var - self.calibration_var_m2) / 2
+            cov = self.anchor_cov + drift[..., None, None] * np.eye(2)
+        sel = np.flatnonzero(copies)
+        if cold:
+            fixes = [locate_tags(self.anchors_est[k], ranges[k], self.range_std_m, with_covariance=False,
+                                 anchor_covariance=None if cov is None else cov[k]) for k in sel]
+            pos = np.stack([f.positions for f in fixes])
+            rms = np.stack([f.residual_rms_m for f in fixes])
+        else:
+            pos, rms = self._gauss_newton(sel, ranges[sel], None if cov is None else cov[sel])
+            restart = solver.tag_restart_residual_m + 2.0 * np.sqrt(pred_var[sel].max(axis=1))
+            for row, k in enumerate(sel):
+                stuck = ~(rms[row] <= restart[row])
+                if stuck.any():  # rare: re-solve this copy's stuck tags from the closed form
+                    again = locate_tags(self.anchors_est[k], ranges[k][stuck], self.range_std_m,
+                                        with_covariance=False, anchor_covariance=None if cov is None else cov[k])
+                    better = again.ok & ~(again.residual_rms_m >= rms[row][stuck])
+                    idx = np.flatnonzero(stuck)[better]
+                    pos[row][idx], rms[row][idx] = again.positions[better], again.residual_rms_m[better]
+        ok = np.isfinite(pos).all(axis=2)
+        old = self.tag_fix[sel]
+        new = np.where(ok[..., None], pos, old)
+        had = np.isfinite(old).all(axis=2) & ok
+        self.tag_velocity[sel] = np.where(had[..., None], (new - np.nan_to_num(old)) / self.dt_s,
+                                          self.tag_velocity[sel])
+        self.tag_fix[sel] = new
+        # residual statistics per copy
+        predicted = np.linalg.norm(new[:, :, None, :] - self.anchors_est[sel][:, None, :, :], axis=-1)
+        per_anchor = np.abs(predicted - ranges[sel])
+        seen = np.isfinite(per_anchor) & ok[..., None]
+        tag_mean = np.where(ok, rms, 0.0).sum(1) / np.maximum(ok.sum(1), 1)
+        anchor_mean = np.where(seen, per_anchor, 0.0).sum(1) / np.maximum(seen.sum(1), 1)
+        any_ok = ok.any(1)
+        w = self.config.residual_window_steps
+        slot = self._hist[sel] % w
+        prev = (slot - 1) % w
+        self._tag_res[sel, slot] = np.where(any_ok, tag_mean, self._tag_res[sel, prev])
+        self._anchor_res[sel, slot] = np.where(any_ok[:, None], anchor_mean, self._anchor_res[sel, prev])
+        self._hist[sel] += 1
+
+    def _gauss_newton(self, sel, r, cov):
+        """2D Gauss-Newton for (copies, tags) with each copy's anchors, warm-started."""
+        solver = self.config.solver
+        a = self.anchors_est[sel]  # (S,N,2)
+        ax, ay = a[:, None, :, 0], a[:, None, :, 1]
+        p = self.tag_fix[sel]
+        px, py = p[..., 0].copy(), p[..., 1].copy()
+        valid = np.isfinite(r)
+        rr = np.where(valid, r, 0.0)
+        base_var = self.range_std_m ** 2
+        enough = valid.sum(-1) >= 3
+        for _ in range(solver.tag_iterations):
+            dx, dy = px[..., None] - ax, py[..., None] - ay
+            dist = np.maximum(np.hypot(dx, dy), 1e-12)
+            ux, uy = dx / dist, dy / dist
+            if cov is None:
+                iv = np.where(valid, 1.0 / base_var, 0.0)
+            else:
+                c00, c01, c11 = (cov[:, None, :, 0, 0], cov[:, None, :, 0, 1], cov[:, None, :, 1, 1])
+                iv = np.where(valid, 1.0 / (base_var + ux * ux * c00 + 2 * ux * uy * c01 + uy * uy * c11), 0.0)
+            res = np.where(valid, dist - rr, 0.0)
+            w = iv if solver.loss == "linear" else iv * irls_weights(res * np.sqrt(iv), solver.loss,
+                                                                    solver.f_scale_sigmas)
+            wx, wy = w * ux, w * uy
+            A, Bm, C = (wx * ux).sum(-1), (wx * uy).sum(-1), (wy * uy).sum(-1)
+            gx, gy = (wx * res).sum(-1), (wy * res).sum(-1)
+            det = A * C - Bm * Bm
+            det = np.where(enough & (det > 1e-300), det, np.inf)
+            px, py = px - (C * gx - Bm * gy) / det, py - (A * gy - Bm * gx) / det
+        dx, dy = px[..., None] - ax, py[..., None] - ay
+        res = np.where(valid, np.hypot(dx, dy) - rr, 0.0)
+        rms = np.sqrt((res ** 2).sum(-1) / np.maximum(valid.sum(-1), 1))
+        pos = np.stack([px, py], axis=-1)
+        bad = ~enough | ~np.isfinite(pos).all(-1)
+        pos[bad] = np.nan
+        rms[bad] = np.nan
+        return pos, rms
+
+    # -- observations and metrics --------------------------------------------------------------------
+    def features(self) -> np.ndarray:
+        """(B, N, 2 + 8) float32 features, the single env's fields, clipped into its bounds."""
+        B, N = self.B, self.N
+        w = self.config.residual_window_steps
+        filled = np.minimum(self._hist, w)
+        idx = np.arange(w)[None, :] < filled[:, None]
+        tag_res = np.where(idx, self._tag_res, 0.0).sum(1) / np.maximum(filled, 1)
+        own = np.where(idx[..., None], self._anchor_res, 0.0).sum(1) / np.maximum(filled, 1)[:, None]
+        f = np.empty((B, N, self.obs_size), dtype=np.float32)
+        f[..., :2] = self.anchors_est
+        f[..., 2] = self.time_since_calibration_s
+        f[..., 3] = np.sqrt(self.predicted_anchor_var_m2())
+        f[..., 4] = np.sqrt(self.calibration_var_m2)
+        f[..., 5] = self.last_calibration_rms_m[:, None]
+        f[..., 6] = tag_res[:, None]
+        f[..., 7] = own
+        f[..., 8] = np.array([r is not None for r in self.rounds], dtype=np.float32)[:, None]
+        f[..., 9] = np.array([r.progress if r is not None else 0.0 for r in self.rounds], dtype=np.float32)[:, None]
+        return np.clip(f, self.obs_low, self.obs_high)
+
+    def errors_m(self) -> tuple[np.ndarray, np.ndarray]:
+        """(B, N) anchor and (B, M) tag errors after each copy's rigid constellation alignment
+        (as the single env), tag errors capped at ``error_cap_m``."""
+        rot, org = self.frame_rot, self.frame_origin
+        truth_a = np.einsum("bij,bnj->bni", rot, self.anchors_true - org[:, None])
+        truth_t = np.einsum("bij,bnj->bni", rot, self.tags_true - org[:, None])
+        est = self.anchors_est
+        # 2D Procrustes without reflection, closed form per copy
+        ma, me = truth_a.mean(1, keepdims=True), est.mean(1, keepdims=True)
+        s, t = truth_a - ma, est - me
+        angle = np.arctan2((s[..., 0] * t[..., 1] - s[..., 1] * t[..., 0]).sum(1), (s * t).sum((1, 2)))
+        c, si = np.cos(angle)[:, None], np.sin(angle)[:, None]
+
+        def align(p):
+            q = p - ma
+            return np.stack([c * q[..., 0] - si * q[..., 1], si * q[..., 0] + c * q[..., 1]], -1) + me
+
+        anchor_err = np.linalg.norm(est - align(truth_a), axis=-1)
+        tag_err = np.linalg.norm(self.tag_fix - align(truth_t), axis=-1)
+        cap = self.config.error_cap_m
+        return anchor_err, np.minimum(np.where(np.isfinite(tag_err), tag_err, cap), cap)
+
+    def rewards(self, report: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        cfg = self.config
+        anchor_err, tag_err = self.errors_m()
+        tag = tag_err.mean(1) if self.M else np.zeros(self.B)
+        anchor = np.minimum(anchor_err, cfg.error_cap_m).mean(1)
+        reward = -(cfg.tag_error_weight * tag + cfg.anchor_error_weight * anchor
+                   + cfg.calibration_time_weight * report["calibrating_fraction"]
+                   + cfg.calibration_start_cost * report["round_started"])
+        return reward, tag, anchor
