@@ -13,7 +13,7 @@ def test_batched_statistics_match_the_single_env():
     cfg = EnvConfig.from_dict({"max_cycles": 200})
     venv = CalibrationSchedulingVectorEnv(24, config=cfg)
     venv.reset(seed=0)
-    tag, anchor, busy, count = [], [], [], []
+    tag, anchor, busy = [], [], []
     for t in range(200):
         _, _, _, _, info = venv.step(np.full(24, int((t + 1) % 10 == 0)))
         tag.append(info["mean_tag_error_m"])

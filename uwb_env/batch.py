@@ -199,17 +199,18 @@ class BatchedSystem:
     def _fix_tags(self, copies: np.ndarray, cold: bool = False) -> None:
         if self.M == 0 or not copies.any():
             return
-        B, N, M = self.B, self.N, self.M
-        d = np.linalg.norm(self.anchors_true[:, :, None, :] - self.tags_true[:, None, :, :], axis=-1)  # (B,N,M)
-        raw = self.range_model.measure(d, self.rng)
-        ranges = np.maximum(self.range_model.correct(raw), 0.0).transpose(0, 2, 1)  # (B,M,N)
+        sel = np.flatnonzero(copies)
+        # ranges only where tags are being fixed (no ranging while a copy's round runs)
+        d = np.linalg.norm(self.tags_true[sel][:, :, None, :] - self.anchors_true[sel][:, None, :, :], axis=-1)
+        raw = self.range_model.measure(d, self.rng)  # (S, M, N)
+        ranges = np.full((self.B, self.M, self.N), np.nan)
+        ranges[sel] = np.maximum(self.range_model.correct(raw), 0.0)
         solver = self.config.solver
         pred_var = self.predicted_anchor_var_m2()
         cov = None
         if solver.use_anchor_covariance:
             drift = (pred_var - self.calibration_var_m2) / 2
             cov = self.anchor_cov + drift[..., None, None] * np.eye(2)
-        sel = np.flatnonzero(copies)
         if cold:
             fixes = [locate_tags(self.anchors_est[k], ranges[k], self.range_std_m, with_covariance=False,
                                  anchor_covariance=None if cov is None else cov[k]) for k in sel]
