@@ -33,7 +33,7 @@ import yaml
 ALGOS = ("ppo", "a2c", "dqn")
 # "batched": the scheduler task, with all training copies stepped together in numpy
 ENV_IDS = {"scheduler": "uwb_env/CalibrationScheduling-v0", "parallel": "uwb_env/Parallel-v0",
-           "batched": "uwb_env/CalibrationScheduling-v0"}
+           "batched": "uwb_env/CalibrationScheduling-batched"}
 VALIDATION_SEED_BASE = 500_000
 HYPERPARAMS_DIR = Path(__file__).with_name("hyperparams")
 
