@@ -7,6 +7,7 @@ all build policies from specs so that a result row names exactly what ran.
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 
 from agents.baselines import (
     AlwaysPolicy,
@@ -19,9 +20,19 @@ from agents.baselines import (
 )
 
 
+SHIPPED_MODELS = Path(__file__).with_name("models")
+
+
+def shipped_model(name: str) -> Path:
+    """A model shipped with the package: ``learned:ppo_scheduler`` -> agents/models/ppo_scheduler/model.zip."""
+    return SHIPPED_MODELS / name / "model.zip"
+
+
 def _learned(path: str, dt_s: float):
     from agents.learned import LearnedPolicy
 
+    if "/" not in path and not path.endswith(".zip"):  # a shipped model's name
+        path = str(shipped_model(path))
     return LearnedPolicy.load(path)
 
 
@@ -42,7 +53,7 @@ POLICIES: dict[str, tuple[Callable, str]] = {
     "always": (lambda p, dt: AlwaysPolicy(), "-"),
     "random": (lambda p, dt: RandomPolicy(float(p or 0.05)), "request probability per step"),
     "oracle": (lambda p, dt: OraclePolicy(float(p or 0.3)), "true mean anchor error threshold (m); GROUND TRUTH"),
-    "learned": (lambda p, dt: _learned(p, dt), "path of a saved SB3 model (.zip)"),
+    "learned": (lambda p, dt: _learned(p, dt), "path of a saved SB3 model (.zip), or a shipped model's name"),
     "rllib": (lambda p, dt: _rllib(p, dt), "path of an RLlib checkpoint folder"),
 }
 

@@ -110,3 +110,14 @@ def test_batched_training_mode(tmp_path, short_episodes):
     policy = LearnedPolicy.load(out / "model.zip")
     assert policy.kind == "scheduler"  # same observations as the single scheduler env
     assert rollout(parallel_env(max_cycles=10), policy, seed=0).steps == 10
+
+
+def test_shipped_model_runs_through_the_hook():
+    from agents.registry import shipped_model
+    from training.evaluate import default_policies
+
+    assert shipped_model("ppo_scheduler").is_file()
+    assert "learned:ppo_scheduler" in default_policies()
+    policy = make_policy("learned:ppo_scheduler")
+    result = rollout(parallel_env(max_cycles=300), policy, seed=1)
+    assert result.steps == 300 and 0 < result.round_started.sum() < 100  # it calibrates, not always

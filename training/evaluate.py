@@ -40,9 +40,23 @@ METRICS = ("mean_tag_error_m", "median_tag_error_m", "p95_tag_error_m", "mean_an
            "calibrations_per_min", "fraction_calibrating", "return")
 
 
+def default_policies() -> list[str]:
+    """The baselines, plus the shipped PPO scheduler when stable-baselines3 is installed."""
+    from agents.registry import shipped_model
+
+    policies = list(DEFAULT_POLICIES)
+    try:
+        import stable_baselines3  # noqa: F401
+    except ImportError:
+        return policies
+    if shipped_model("ppo_scheduler").is_file():
+        policies.insert(0, "learned:ppo_scheduler")
+    return policies
+
+
 @dataclass
 class Args:
-    policies: list[str] = field(default_factory=lambda: list(DEFAULT_POLICIES))
+    policies: list[str] = field(default_factory=default_policies)
     """policy specs (see ``agents.registry``)"""
     seeds: int = 6
     """evaluation episodes per policy (seeds EVAL_SEED_BASE + seed_offset + i)"""
