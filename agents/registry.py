@@ -19,7 +19,6 @@ from agents.baselines import (
     UncertaintyThresholdPolicy,
 )
 
-
 SHIPPED_MODELS = Path(__file__).with_name("models")
 
 
