@@ -104,9 +104,10 @@ def _lec_fast(body: str) -> LocationReport | None:
         return None
     if not math.isfinite(sum(v) + (sum(pos) if pos else 0.0)):
         return None
-    ranges = tuple([AnchorRange(ids[i].upper(), (v[4 * i], v[4 * i + 1], v[4 * i + 2]), v[4 * i + 3])
+    new = tuple.__new__  # NamedTuple construction without its Python-level __new__ (hot path)
+    ranges = tuple([new(AnchorRange, (ids[i].upper(), (v[4 * i], v[4 * i + 1], v[4 * i + 2]), v[4 * i + 3]))
                     for i in range(n)])
-    return LocationReport(ranges, pos, int(f[-1]) if pos else None, "lec")
+    return new(LocationReport, (ranges, pos, int(f[-1]) if pos else None, "lec"))
 
 
 def parse_lec(line: str) -> LocationReport:
@@ -179,9 +180,13 @@ class ShellDecoder:
         out = []
         if complete and PROMPT not in complete and GENERIC_ERROR not in complete:
             # the streaming case: decode once, then line by line
-            chunk = self._chunk
+            chunk, fast, append = self._chunk, _lec_fast, out.append
             for line in complete.decode("ascii", errors="replace").replace("\r", "").split("\n"):
-                out.extend(chunk(line))
+                report = fast(line) if line.startswith("DIST,") else None  # the common, clean case
+                if report is not None:
+                    append(report)
+                else:
+                    out.extend(chunk(line))
         elif complete:
             for line in complete.split(b"\n"):
                 if PROMPT in line or GENERIC_ERROR in line:
