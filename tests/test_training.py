@@ -21,13 +21,6 @@ def _args(out, **kw):
     return Args(**(base | kw))
 
 
-@pytest.fixture
-def short_episodes(tmp_path):
-    path = tmp_path / "env.yml"
-    path.write_text("max_cycles: 40\n")
-    return str(path)
-
-
 def test_short_run_writes_model_checkpoint_logs_and_resumes(tmp_path, short_episodes):
     out = tmp_path / "run"
     record = main(_args(out, env_config=short_episodes))

@@ -28,7 +28,7 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-import yaml
+from training.hyperparams_io import load_block
 
 ALGOS = ("ppo", "a2c", "dqn")
 # "batched": the scheduler task, with all training copies stepped together in numpy
@@ -71,18 +71,7 @@ class Args:
 
 def load_hyperparams(args: Args) -> dict:
     path = Path(args.hyperparams) if args.hyperparams else HYPERPARAMS_DIR / f"{args.algo}.yml"
-    with open(path) as f:
-        table = yaml.safe_load(f) or {}
-    env_id = ENV_IDS[args.env]
-    if env_id not in table:
-        raise ValueError(f"hyperparams={str(path)!r}: no block for env id {env_id!r}")
-    hp = dict(table[env_id])
-    for item in args.hp:
-        key, sep, value = item.partition("=")
-        if not sep or not key:
-            raise ValueError(f"hp={item!r}: expected key=value")
-        hp[key] = yaml.safe_load(value)
-    return hp
+    return load_block(path, ENV_IDS[args.env], args.hp)
 
 
 def _check(args: Args) -> None:

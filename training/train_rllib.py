@@ -22,7 +22,7 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-import yaml
+from training.hyperparams_io import load_block
 
 HYPERPARAMS = Path(__file__).with_name("hyperparams") / "rllib_ppo.yml"
 ENV_ID = "uwb_env/Parallel-v0"
@@ -48,18 +48,7 @@ class Args:
 
 
 def load_hyperparams(args: Args) -> dict:
-    path = Path(args.hyperparams) if args.hyperparams else HYPERPARAMS
-    with open(path) as f:
-        table = yaml.safe_load(f) or {}
-    if ENV_ID not in table:
-        raise ValueError(f"hyperparams={str(path)!r}: no block for env id {ENV_ID!r}")
-    hp = dict(table[ENV_ID])
-    for item in args.hp:
-        key, sep, value = item.partition("=")
-        if not sep or not key:
-            raise ValueError(f"hp={item!r}: expected key=value")
-        hp[key] = yaml.safe_load(value)
-    return hp
+    return load_block(Path(args.hyperparams) if args.hyperparams else HYPERPARAMS, ENV_ID, args.hp)
 
 
 def _make_env(cfg: dict):

@@ -24,13 +24,6 @@ def local_ray():
     ray.shutdown()
 
 
-@pytest.fixture
-def short_episodes(tmp_path):
-    path = tmp_path / "env.yml"
-    path.write_text("max_cycles: 40\n")
-    return str(path)
-
-
 def test_one_rllib_iteration_checkpoints_restores_and_acts(tmp_path, short_episodes):
     from training.train_rllib import Args, main
 

@@ -30,6 +30,7 @@ from uwb_env.measurements import RangeMatrix
 from uwb_env.sim.calibration_round import RoundTiming
 from uwb_env.sim.odometry import OdometryModel
 from uwb_env.sim.ranging import RangeModel
+from uwb_env.sim.world import RoundRunner
 
 
 @dataclass(frozen=True)
@@ -72,7 +73,7 @@ class HardwareRound:
         return self.matrix
 
 
-class HardwareWorld:
+class HardwareWorld(RoundRunner):
     """See the module docstring. ``tags`` are shell drivers (one per tag) in anchor-ID order
     ``anchor_ids`` (the ID4 labels the tags report for anchors 0..N-1)."""
 
@@ -180,14 +181,6 @@ class HardwareWorld:
             m = finished.matrix
             finished.matrix = RangeMatrix(self._undo_correction(m.mean_m), m.std_m, m.count)
         return finished
-
-    def run_calibration_round(self, measurements_per_pair: int | None = None):
-        self.start_calibration_round(measurements_per_pair)
-        steps = 0
-        while not self.round.done:
-            self.step()
-            steps += 1
-        return self.finish_calibration_round().result(), steps
 
     def _undo_correction(self, ranges: np.ndarray) -> np.ndarray:
         # The system corrects every range with the fitted model; for firmware whose ranges are

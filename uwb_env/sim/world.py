@@ -18,7 +18,21 @@ from uwb_env.sim.odometry import OdometryModel
 from uwb_env.sim.ranging import RangeModel
 
 
-class World:
+class RoundRunner:
+    """``run_calibration_round`` for anything with the World round interface (the simulated
+    world and the hardware backend)."""
+
+    def run_calibration_round(self, measurements_per_pair: int | None = None):
+        """Start a round and step until it completes; return (RangeMatrix, steps taken)."""
+        self.start_calibration_round(measurements_per_pair)
+        steps = 0
+        while not self.round.done:
+            self.step()
+            steps += 1
+        return self.finish_calibration_round().result(), steps
+
+
+class World(RoundRunner):
     """N anchor robots with drifting odometry and M tags in a square area.
 
     Args:
@@ -101,14 +115,6 @@ class World:
         finished, self.round = self.round, None
         return finished
 
-    def run_calibration_round(self, measurements_per_pair: int | None = None):
-        """Start a round and step until it completes; return (RangeMatrix, steps taken)."""
-        self.start_calibration_round(measurements_per_pair)
-        steps = 0
-        while not self.round.done:
-            self.step()
-            steps += 1
-        return self.finish_calibration_round().result(), steps
 
     # -- frames ----------------------------------------------------------------------------
     def set_estimate_frame(self, rotation: np.ndarray, origin: np.ndarray) -> None:
