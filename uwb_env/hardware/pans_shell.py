@@ -61,53 +61,56 @@ class TextLine:
 
 
 _HEX = frozenset("0123456789abcdefABCDEF")
-_LEC_LAYOUT: dict[int, tuple] = {}
+_COUNTS = {str(n): n for n in range(1, 16)}
+_LEC_LAYOUT: dict[tuple[int, bool], tuple] = {}
 
 
-def _lec_layout(n: int) -> tuple:
-    # Per anchor count: the expected AN labels and getters for the label, ID and number fields,
-    # so a well-formed line is checked and converted with a few C-level calls.
-    if n not in _LEC_LAYOUT:
-        labels = tuple(f"AN{i}" for i in range(n))
-        label_at = [2 + 6 * i for i in range(n)]
-        nums = [k + j for k in label_at for j in range(2, 6)]
-        _LEC_LAYOUT[n] = (labels, operator.itemgetter(*label_at), operator.itemgetter(*[k + 1 for k in label_at]),
-                          operator.itemgetter(*nums))
-    return _LEC_LAYOUT[n]
+def _lec_layout(n: int, with_pos: bool) -> tuple:
+    # Per (anchor count, POS present): the expected AN labels and C-level getters for the
+    # labels, the IDs and every number (positions, distances, then POS x, y, z).
+    key = (n, with_pos)
+    if key not in _LEC_LAYOUT:
+        pos_at = 2 + 6 * n
+        starts = [2 + 6 * i for i in range(n)]
+        labels = tuple(f"AN{i}" for i in range(n)) + (("POS",) if with_pos else ())
+        label_at = starts + ([pos_at] if with_pos else [])
+        nums = [k + j for k in starts for j in range(2, 6)] + ([pos_at + 1, pos_at + 2, pos_at + 3] if with_pos else [])
+        get_ids = operator.itemgetter(*[k + 1 for k in starts]) if n > 1 else (lambda f: (f[3],))
+        _LEC_LAYOUT[key] = (labels, operator.itemgetter(*label_at), get_ids, operator.itemgetter(*nums))
+    return _LEC_LAYOUT[key]
 
 
 def _lec_fast(body: str) -> LocationReport | None:
     """A well-formed line by field positions (the common case); None sends it to the regexes."""
     f = body.rstrip().split(",")
-    count = f[1] if len(f) > 1 else ""
-    if not count.isdigit() or not 0 < int(count) <= 15:
+    n = _COUNTS.get(f[1]) if len(f) > 1 else None
+    if n is None:
         return None
-    n = int(count)
-    pos_at = 2 + 6 * n
-    if len(f) == pos_at + 5:
-        if f[pos_at] != "POS" or not f[-1].isdigit():
+    size = len(f) - 2 - 6 * n
+    if size == 5:
+        if not f[-1].isdigit():
             return None
-    elif len(f) != pos_at:
+    elif size != 0:
         return None
-    labels, get_labels, get_ids, get_nums = _lec_layout(n)
+    labels, get_labels, get_ids, get_nums = _lec_layout(n, size == 5)
     found = get_labels(f)
     ids = get_ids(f)
-    if n == 1:
-        found, ids = (found,), (ids,)
     joined = "".join(ids)
-    if found != labels or len(joined) != 4 * n or not _HEX.issuperset(joined) or len(set(ids)) != n:
+    if (found if isinstance(found, tuple) else (found,)) != labels or len(joined) != 4 * n \
+            or not _HEX.issuperset(joined) or len(set(ids)) != n:
         return None
     try:
         v = list(map(float, get_nums(f)))
-        pos = (float(f[pos_at + 1]), float(f[pos_at + 2]), float(f[pos_at + 3])) if len(f) > pos_at else None
     except ValueError:
         return None
-    if not math.isfinite(sum(v) + (sum(pos) if pos else 0.0)):
+    if not math.isfinite(sum(v)):
         return None
     new = tuple.__new__  # NamedTuple construction without its Python-level __new__ (hot path)
     ranges = tuple([new(AnchorRange, (ids[i].upper(), (v[4 * i], v[4 * i + 1], v[4 * i + 2]), v[4 * i + 3]))
                     for i in range(n)])
-    return new(LocationReport, (ranges, pos, int(f[-1]) if pos else None, "lec"))
+    if size == 5:
+        return new(LocationReport, (ranges, (v[-3], v[-2], v[-1]), int(f[-1]), "lec"))
+    return new(LocationReport, (ranges, None, None, "lec"))
 
 
 def parse_lec(line: str) -> LocationReport:
