@@ -76,11 +76,14 @@ class MotionModel:
         noise = rng.standard_normal(3 * n)
         jitter_noise = noise[: 2 * n].view(np.complex128)
         old_heading = self.headings
-        heading = old_heading + (self.heading_std * sqrt_dt) * noise[2 * n :]
+        increment = (self.heading_std * sqrt_dt) * noise[2 * n :]
+        heading = old_heading + increment
+        steered = False  # headings changed by more than the noise (waypoints, walls)
         step_len = self.speeds * dt_s
         jitter = self.position_std * sqrt_dt
         if self._any_waypoint:
             heading, step_len = self._steer_to_waypoints(heading, step_len, rng)
+            steered = True
         if self._any_pauses:
             moving = self.pause_left_s <= 0.0
             if self._any_pause_rate:
@@ -90,9 +93,9 @@ class MotionModel:
             jitter = jitter * moving
         new_xy = xy + step_len * np.exp(1j * heading) + jitter * jitter_noise
         flat = new_xy.view(np.float64)
-        half = 0.5 * self.area_size_m
-        if (np.abs(flat - half) > half).any():
+        if flat.min() < 0.0 or flat.max() > self.area_size_m:
             new_xy, heading = _reflect(new_xy, heading, self.area_size_m)
+            steered = True
         step_xy = (new_xy - xy).view(np.float64).reshape(n, 2)
         if dim == 2:
             delta = step_xy
@@ -101,7 +104,10 @@ class MotionModel:
             delta[:, :2] = step_xy
         xy[:] = new_xy
         self.headings = heading
-        turn = np.abs((heading - old_heading + np.pi) % (2 * np.pi) - np.pi)
+        if steered:
+            turn = np.abs((heading - old_heading + np.pi) % (2 * np.pi) - np.pi)
+        else:  # only the (small) heading noise turned the robots
+            turn = np.abs(increment)
         return delta, turn
 
     def command(self, rows: np.ndarray, headings_rad: np.ndarray, speeds_mps: np.ndarray) -> None:

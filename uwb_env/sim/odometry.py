@@ -45,7 +45,7 @@ class OdometryModel:
             return delta + rng.uniform(-e, e, (n, dim))
         # 4n normals: [0, 2n) complex white noise, [2n, 3n) yaw increments, [3n, 4n) slip starts.
         noise = rng.standard_normal(4 * n)
-        gain = 1.0
+        gain = None  # per-robot noise multiplier while slipping; None: nobody slips
         if cfg.slip_rate_per_s > 0.0:
             if dt_s != self._slip_dt_s:  # the threshold depends on dt only: compute it once
                 self._slip_dt_s, self._slip_q = dt_s, upper_tail_threshold(cfg.slip_rate_per_s * dt_s)
@@ -61,8 +61,9 @@ class OdometryModel:
         dist = np.abs(d)
         # yaw error random-walks with distance travelled and with turning
         yaw_var = self._yaw_var_per_m * dist + self._yaw_var_per_rad * turn_rad
-        self.yaw_error_rad = self.yaw_error_rad + gain * np.sqrt(yaw_var) * noise[2 * n : 3 * n]
-        white = (gain * cfg.noise_std_m_per_sqrt_m) * np.sqrt(dist)
+        yaw_step = np.sqrt(yaw_var) * noise[2 * n : 3 * n]
+        self.yaw_error_rad = self.yaw_error_rad + (yaw_step if gain is None else gain * yaw_step)
+        white = (cfg.noise_std_m_per_sqrt_m if gain is None else gain * cfg.noise_std_m_per_sqrt_m) * np.sqrt(dist)
         est = self.scale * np.exp(1j * self.yaw_error_rad) * d + white * noise[: 2 * n].view(np.complex128)
         planar = est.view(np.float64).reshape(n, 2)
         if dim == 2:
