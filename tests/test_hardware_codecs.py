@@ -215,3 +215,18 @@ def test_lec_fast_path_agrees_with_the_group_parser(values, with_pos):
     fast = _lec_fast(line)
     assert fast is not None and fast == _lec_by_groups(line, line)
     assert [r.anchor_id for r in fast.ranges] == [r.anchor_id for r in ranges]
+
+
+def test_lec_anchor_cache_reuses_positions_but_never_distances():
+    from uwb_env.hardware import pans_shell
+
+    a = parse_lec("DIST,2,AN0,1151,5.00,8.00,2.25,6.44,AN1,0CA8,0.00,8.00,2.25,6.50,POS,1.00,2.00,0.50,90")
+    b = parse_lec("DIST,2,AN0,1151,5.00,8.00,2.25,1.11,AN1,0CA8,0.00,8.00,2.25,2.22,POS,3.00,4.00,0.50,80")
+    assert [r.distance_m for r in a.ranges] == [6.44, 6.50] and [r.distance_m for r in b.ranges] == [1.11, 2.22]
+    assert a.ranges[0].position_m == b.ranges[0].position_m == (5.0, 8.0, 2.25)
+    assert b.position_m == (3.0, 4.0, 0.5) and b.quality == 80
+    # the cache stays bounded and correct when a stream keeps bringing new anchor groups
+    for k in range(pans_shell._ANCHOR_CACHE_SIZE + 10):
+        r = parse_lec(f"DIST,1,AN0,1151,{k}.00,0.00,0.00,1.50")
+        assert r.ranges[0].position_m == (float(k), 0.0, 0.0)
+    assert len(pans_shell._ANCHOR_CACHE) <= pans_shell._ANCHOR_CACHE_SIZE

@@ -63,21 +63,41 @@ class TextLine:
 _HEX = frozenset("0123456789abcdefABCDEF")
 _COUNTS = {str(n): n for n in range(1, 16)}
 _LEC_LAYOUT: dict[tuple[int, bool], tuple] = {}
+# Anchor groups seen before -> (IDs, positions): anchors report their configured positions, so a
+# stream repeats them and only distances (and the tag's position) need converting.
+_ANCHOR_CACHE: dict[tuple, tuple] = {}
+_ANCHOR_CACHE_SIZE = 4096
 
 
 def _lec_layout(n: int, with_pos: bool) -> tuple:
-    # Per (anchor count, POS present): the expected AN labels and C-level getters for the
-    # labels, the IDs and every number (positions, distances, then POS x, y, z).
+    # Per (anchor count, POS present): C-level getters for the labels, the anchor fields
+    # (ID, x, y, z of each), the distances and the tag position.
     key = (n, with_pos)
     if key not in _LEC_LAYOUT:
         pos_at = 2 + 6 * n
         starts = [2 + 6 * i for i in range(n)]
         labels = tuple(f"AN{i}" for i in range(n)) + (("POS",) if with_pos else ())
-        label_at = starts + ([pos_at] if with_pos else [])
-        nums = [k + j for k in starts for j in range(2, 6)] + ([pos_at + 1, pos_at + 2, pos_at + 3] if with_pos else [])
-        get_ids = operator.itemgetter(*[k + 1 for k in starts]) if n > 1 else (lambda f: (f[3],))
-        _LEC_LAYOUT[key] = (labels, operator.itemgetter(*label_at), get_ids, operator.itemgetter(*nums))
+        get_labels = operator.itemgetter(*(starts + ([pos_at] if with_pos else [])))
+        get_anchor = operator.itemgetter(*[k + j for k in starts for j in range(1, 5)])
+        get_dist = operator.itemgetter(*[k + 5 for k in starts]) if n > 1 else (lambda f: (f[7],))
+        get_pos = operator.itemgetter(pos_at + 1, pos_at + 2, pos_at + 3)
+        _LEC_LAYOUT[key] = (labels if len(labels) > 1 else labels[0], get_labels, get_anchor, get_dist, get_pos)
     return _LEC_LAYOUT[key]
+
+
+def _anchor_groups(fields: tuple, n: int) -> tuple | None:
+    """Validate and convert the (ID, x, y, z) fields of n anchors; None if malformed."""
+    ids = fields[0::4]
+    joined = "".join(ids)
+    if len(joined) != 4 * n or not _HEX.issuperset(joined) or len(set(ids)) != n:
+        return None
+    try:
+        v = list(map(float, (x for i, x in enumerate(fields) if i % 4)))
+    except ValueError:
+        return None
+    if not math.isfinite(sum(v)):
+        return None
+    return tuple(i.upper() for i in ids), tuple((v[3 * k], v[3 * k + 1], v[3 * k + 2]) for k in range(n))
 
 
 def _lec_fast(body: str) -> LocationReport | None:
@@ -92,25 +112,29 @@ def _lec_fast(body: str) -> LocationReport | None:
             return None
     elif size != 0:
         return None
-    labels, get_labels, get_ids, get_nums = _lec_layout(n, size == 5)
-    found = get_labels(f)
-    ids = get_ids(f)
-    joined = "".join(ids)
-    if (found if isinstance(found, tuple) else (found,)) != labels or len(joined) != 4 * n \
-            or not _HEX.issuperset(joined) or len(set(ids)) != n:
+    labels, get_labels, get_anchor, get_dist, get_pos = _lec_layout(n, size == 5)
+    if get_labels(f) != labels:
         return None
+    fields = get_anchor(f)
+    groups = _ANCHOR_CACHE.get(fields)
+    if groups is None:
+        groups = _anchor_groups(fields, n)
+        if groups is None:
+            return None
+        if len(_ANCHOR_CACHE) >= _ANCHOR_CACHE_SIZE:
+            _ANCHOR_CACHE.clear()
+        _ANCHOR_CACHE[fields] = groups
     try:
-        v = list(map(float, get_nums(f)))
+        d = list(map(float, get_dist(f)))
+        pos = tuple(map(float, get_pos(f))) if size == 5 else None
     except ValueError:
         return None
-    if not math.isfinite(sum(v)):
+    if not math.isfinite(sum(d) + (sum(pos) if pos else 0.0)):
         return None
     new = tuple.__new__  # NamedTuple construction without its Python-level __new__ (hot path)
-    ranges = tuple([new(AnchorRange, (ids[i].upper(), (v[4 * i], v[4 * i + 1], v[4 * i + 2]), v[4 * i + 3]))
-                    for i in range(n)])
-    if size == 5:
-        return new(LocationReport, (ranges, (v[-3], v[-2], v[-1]), int(f[-1]), "lec"))
-    return new(LocationReport, (ranges, None, None, "lec"))
+    ids, positions = groups
+    ranges = tuple([new(AnchorRange, (ids[i], positions[i], d[i])) for i in range(n)])
+    return new(LocationReport, (ranges, pos, int(f[-1]) if pos else None, "lec"))
 
 
 def parse_lec(line: str) -> LocationReport:
