@@ -128,3 +128,22 @@ def test_port_errors_name_the_port():
         port.write(b"hello\n")
         assert port.read_until(b"\n", 1.0) == b"hello\n"
     assert time.monotonic() - t0 < 2
+
+
+def test_scheduler_env_runs_on_emulated_devices():
+    from uwb_env.env.scheduler_env import CalibrationSchedulingEnv
+
+    cfg = _config(12)
+    scene = Scene(cfg.sim, seed=4)
+    emu, urls = standard_setup(scene)
+    with emu:
+        world = connect(cfg.sim, urls["anchor"], [urls[f"tag_{i}"] for i in range(3)])
+        env = CalibrationSchedulingEnv(cfg, backend=world)
+        obs, info = env.reset(seed=0)
+        assert env.observation_space.contains(obs)
+        for t in range(12):
+            obs, reward, terminated, truncated, info = env.step(int(t == 2))
+            assert env.observation_space.contains(obs) and np.isfinite(reward)
+        world.close()
+    assert truncated and not terminated
+    assert info["calibration_count"] == 2 and info["ground_truth"] is False

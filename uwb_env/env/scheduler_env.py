@@ -16,7 +16,9 @@ env's table) concatenated in anchor order.
 As in the parallel env (team reward; truncation after ``max_cycles``; never terminated).
 
 ## Arguments
-``gymnasium.make("uwb_env/CalibrationScheduling-v0", config=None, render_mode=None, **overrides)``.
+``gymnasium.make("uwb_env/CalibrationScheduling-v0", config=None, render_mode=None, **overrides)``;
+``backend=`` a :class:`~uwb_env.hardware.backend.HardwareWorld` runs it on DWM1001 devices (as the
+parallel env: no ground truth, residual-proxy reward).
 """
 
 from __future__ import annotations
@@ -36,8 +38,9 @@ class CalibrationSchedulingEnv(gym.Env):
 
     metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 10}
 
-    def __init__(self, config: EnvConfig | dict | None = None, render_mode: str | None = None, **overrides: Any):
-        self.parallel = UWBCalibrationParallelEnv(config, render_mode=render_mode, **overrides)
+    def __init__(self, config: EnvConfig | dict | None = None, render_mode: str | None = None, backend=None,
+                 **overrides: Any):
+        self.parallel = UWBCalibrationParallelEnv(config, render_mode=render_mode, backend=backend, **overrides)
         if self.parallel.config.action_mode != "calibrate":
             raise ValueError("action_mode: the scheduler env supports only 'calibrate'")
         self.config = self.parallel.config
