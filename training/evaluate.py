@@ -260,9 +260,12 @@ def _save(fig, out: str, name: str) -> str:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    d = Args()
-    p.add_argument("--policies", nargs="+", default=d.policies, help="policy specs, e.g. fixed:10 threshold:0.15 "
-                   "learned:model.zip (default: the baselines, plus the shipped model if present)")
+    from agents.registry import POLICIES
+
+    d = Args(policies=[])  # the default policy list is resolved at run time (it may import SB3)
+    p.add_argument("--policies", nargs="+", default=None, help="policy specs NAME[:PARAM], e.g. fixed:10 "
+                   f"threshold:0.15 learned:model.zip; names: {', '.join(POLICIES)} (default: the baselines, "
+                   "plus the shipped PPO model when stable-baselines3 is installed)")
     p.add_argument("--seeds", type=int, default=d.seeds, help=f"episodes per policy (default {d.seeds})")
     p.add_argument("--seed-offset", type=int, default=d.seed_offset)
     p.add_argument("--max-cycles", type=int, default=d.max_cycles, help=f"steps per episode (default {d.max_cycles})")
@@ -275,7 +278,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def args_from_namespace(ns: argparse.Namespace) -> Args:
-    return Args(**{k: getattr(ns, k) for k in asdict(Args())})
+    values = {k: getattr(ns, k) for k in asdict(Args(policies=[])) if hasattr(ns, k)}
+    if values.get("policies") is None:
+        values["policies"] = default_policies()
+    return Args(**values)
 
 
 def main(args: Args) -> dict:
