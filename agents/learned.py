@@ -48,6 +48,10 @@ class LearnedPolicy:
         pass
 
     def _predict(self, obs: np.ndarray) -> np.ndarray:
+        expected = self.model.observation_space.shape
+        if obs.shape[1:] != expected:
+            raise ValueError(f"observation shape {obs.shape[1:]} does not match the model's {expected}: it was "
+                             "trained for another number of anchors (or another env)")
         if self.normalizer is not None:
             obs = self.normalizer.normalize_obs(obs)
         action, _ = self.model.predict(obs, deterministic=self.deterministic)

@@ -70,3 +70,19 @@ def test_cli_evaluate_prints_the_table_and_rejects_a_bad_policy(tmp_path, capsys
     assert "fixed:10" in capsys.readouterr().out
     assert cli_main(["evaluate", "--policies", "nope", "--seeds", "1", "--no-sweep", "--out", str(tmp_path)]) == 2
     assert "unknown name 'nope'" in capsys.readouterr().err
+
+
+def test_several_scenarios_each_get_their_folder_and_one_csv(tmp_path):
+    from pathlib import Path
+
+    scenarios = sorted(str(p) for p in (Path(__file__).parents[1] / "training" / "scenarios").glob("*.yml"))
+    assert len(scenarios) >= 3
+    out = tmp_path / "sc"
+    results = main(Args(policies=["fixed:10"], seeds=1, max_cycles=15, sweep=False, workers=1, out=str(out),
+                        plots=False, progress=False, scenarios=scenarios[:2]))
+    assert set(results) == {Path(s).stem for s in scenarios[:2]}
+    for name in results:
+        assert (out / name / "summary.json").exists()
+    with open(out / "scenarios.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["scenario"] for r in rows] == [Path(s).stem for s in scenarios[:2]]

@@ -114,3 +114,10 @@ def test_shipped_model_runs_through_the_hook():
     policy = make_policy("learned:ppo_scheduler")
     result = rollout(parallel_env(max_cycles=300), policy, seed=1)
     assert result.steps == 300 and 0 < result.round_started.sum() < 100  # it calibrates, not always
+
+
+def test_learned_policy_refuses_a_team_of_another_size():
+    policy = make_policy("learned:ppo_scheduler")  # trained with 4 anchors
+    env = parallel_env(sim={"n_anchors": 5})
+    with pytest.raises(ValueError, match="another number of anchors"):
+        policy.act(*env.reset(seed=0))

@@ -67,6 +67,9 @@ class Args:
     """add the fixed-interval and threshold sweeps (the trade-off curve)"""
     config: str | None = None
     """YAML/JSON file with EnvConfig overrides (the scenario)"""
+    scenarios: list[str] = field(default_factory=list)
+    """several scenario files (e.g. training/scenarios/*.yml): each is evaluated into
+    ``out/<file stem>/`` and ``out/scenarios.csv`` gathers every summary row"""
     workers: int = 1
     """parallel processes (1 = in this process)"""
     out: str | None = "runs/evaluate"
@@ -271,6 +274,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-cycles", type=int, default=d.max_cycles, help=f"steps per episode (default {d.max_cycles})")
     p.add_argument("--no-sweep", dest="sweep", action="store_false", help="skip the fixed/threshold sweeps")
     p.add_argument("--config", default=None, help="YAML/JSON file with EnvConfig overrides")
+    p.add_argument("--scenarios", nargs="+", default=[], help="several scenario files (e.g. "
+                   "training/scenarios/*.yml), each evaluated into OUT/<stem>/")
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="parallel processes")
     p.add_argument("--out", default=d.out, help=f"output folder (default {d.out})")
     p.add_argument("--no-plots", dest="plots", action="store_false")
@@ -285,11 +290,35 @@ def args_from_namespace(ns: argparse.Namespace) -> Args:
 
 
 def main(args: Args) -> dict:
+    if args.scenarios:
+        return evaluate_scenarios(args)
     results = evaluate(args)
     print(format_table(results["summary"]))
     if args.out:
         print(f"wrote {args.out}/ (episodes.csv, summary.csv, summary.json{', plots' if args.plots else ''})")
     return results
+
+
+def evaluate_scenarios(args: Args) -> dict:
+    """Evaluate every scenario file; one folder each, and one CSV of all summary rows."""
+    from dataclasses import replace
+    from pathlib import Path
+
+    by_scenario, rows = {}, []
+    for path in args.scenarios:
+        name = Path(path).stem
+        out = os.path.join(args.out, name) if args.out else None
+        results = evaluate(replace(args, config=path, scenarios=[], out=out))
+        print(f"\n== scenario {name} ({path})\n" + format_table(results["summary"]))
+        by_scenario[name] = results
+        rows += [{"scenario": name, **r} for r in results["summary"]]
+    if args.out:
+        with open(os.path.join(args.out, "scenarios.csv"), "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
+        print(f"wrote {args.out}/<scenario>/ and {args.out}/scenarios.csv")
+    return by_scenario
 
 
 if __name__ == "__main__":
