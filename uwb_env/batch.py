@@ -21,7 +21,7 @@ import numpy as np
 from uwb_env.config import EnvConfig
 from uwb_env.localization import calibrate_anchors, locate_tags, rigid_align
 from uwb_env.localization.errors import LocalizationError
-from uwb_env.localization.robust import irls_weights
+from uwb_env.localization.multilateration import track_tags_2d
 from uwb_env.measurements import RangeMatrix
 from uwb_env.sim import World
 from uwb_env.sim.calibration_round import CalibrationRound
@@ -249,42 +249,9 @@ class BatchedSystem:
         self._hist[sel] += 1
 
     def _gauss_newton(self, sel, r, cov):
-        """2D Gauss-Newton for (copies, tags) with each copy's anchors, warm-started."""
         solver = self.config.solver
-        a = self.anchors_est[sel]  # (S,N,2)
-        ax, ay = a[:, None, :, 0], a[:, None, :, 1]
-        p = self.tag_fix[sel]
-        px, py = p[..., 0].copy(), p[..., 1].copy()
-        valid = np.isfinite(r)
-        rr = np.where(valid, r, 0.0)
-        base_var = self.range_std_m ** 2
-        enough = valid.sum(-1) >= 3
-        for _ in range(solver.tag_iterations):
-            dx, dy = px[..., None] - ax, py[..., None] - ay
-            dist = np.maximum(np.hypot(dx, dy), 1e-12)
-            ux, uy = dx / dist, dy / dist
-            if cov is None:
-                iv = np.where(valid, 1.0 / base_var, 0.0)
-            else:
-                c00, c01, c11 = (cov[:, None, :, 0, 0], cov[:, None, :, 0, 1], cov[:, None, :, 1, 1])
-                iv = np.where(valid, 1.0 / (base_var + ux * ux * c00 + 2 * ux * uy * c01 + uy * uy * c11), 0.0)
-            res = np.where(valid, dist - rr, 0.0)
-            w = iv if solver.loss == "linear" else iv * irls_weights(res * np.sqrt(iv), solver.loss,
-                                                                    solver.f_scale_sigmas)
-            wx, wy = w * ux, w * uy
-            A, Bm, C = (wx * ux).sum(-1), (wx * uy).sum(-1), (wy * uy).sum(-1)
-            gx, gy = (wx * res).sum(-1), (wy * res).sum(-1)
-            det = A * C - Bm * Bm
-            det = np.where(enough & (det > 1e-300), det, np.inf)
-            px, py = px - (C * gx - Bm * gy) / det, py - (A * gy - Bm * gx) / det
-        dx, dy = px[..., None] - ax, py[..., None] - ay
-        res = np.where(valid, np.hypot(dx, dy) - rr, 0.0)
-        rms = np.sqrt((res ** 2).sum(-1) / np.maximum(valid.sum(-1), 1))
-        pos = np.stack([px, py], axis=-1)
-        bad = ~enough | ~np.isfinite(pos).all(-1)
-        pos[bad] = np.nan
-        rms[bad] = np.nan
-        return pos, rms
+        return track_tags_2d(self.anchors_est[sel], self.tag_fix[sel], r, self.range_std_m ** 2, cov, solver.loss,
+                             solver.f_scale_sigmas, solver.tag_iterations)
 
     # -- observations and metrics --------------------------------------------------------------------
     def features(self) -> np.ndarray:

@@ -19,6 +19,7 @@ import numpy as np
 
 from uwb_env.config import EnvConfig
 from uwb_env.localization import LocalizationError, calibrate_anchors, locate_tags, rigid_align
+from uwb_env.localization.multilateration import track_tags_2d
 from uwb_env.measurements import RangeMatrix
 from uwb_env.sim import RangeModel, World
 
@@ -210,26 +211,41 @@ class LocalizationSystem:
         # Stale anchors raise every residual; only a residual well beyond what their predicted
         # error explains suggests a fix stuck in a wrong minimum (worth a cold restart).
         restart_m = solver.tag_restart_residual_m + 2.0 * float(np.sqrt(self.predicted_anchor_var_m2().max()))
-        fix = locate_tags(
-            self.world.anchors_est, ranges, self.range_std_m, anchor_covariance=cov, loss=solver.loss,
-            f_scale=solver.f_scale_sigmas, initial=self.tag_fix, max_iterations=solver.tag_iterations,
-            with_covariance=False, restart_residual_m=restart_m,
-        )
-        ok = fix.ok
+        if self.dim == 2 and np.isfinite(self.tag_fix).all():
+            # tracking (the hot path): the lean batched Gauss-Newton, cold restarts only if stuck
+            positions, rms = track_tags_2d(self.world.anchors_est[None], self.tag_fix[None], ranges[None],
+                                           self.range_std_m ** 2, None if cov is None else cov[None], solver.loss,
+                                           solver.f_scale_sigmas, solver.tag_iterations)
+            positions, rms = positions[0], rms[0]
+            stuck = ~(rms <= restart_m)
+            if stuck.any():
+                again = locate_tags(self.world.anchors_est, ranges[stuck], self.range_std_m, anchor_covariance=cov,
+                                    loss=solver.loss, f_scale=solver.f_scale_sigmas, with_covariance=False)
+                better = again.ok & ~(again.residual_rms_m >= rms[stuck])
+                idx = np.flatnonzero(stuck)[better]
+                positions[idx], rms[idx] = again.positions[better], again.residual_rms_m[better]
+            ok = np.isfinite(positions).all(1)
+        else:
+            fix = locate_tags(
+                self.world.anchors_est, ranges, self.range_std_m, anchor_covariance=cov, loss=solver.loss,
+                f_scale=solver.f_scale_sigmas, initial=self.tag_fix, max_iterations=solver.tag_iterations,
+                with_covariance=False, restart_residual_m=restart_m,
+            )
+            positions, rms, ok = fix.positions, fix.residual_rms_m, fix.ok
         dt = self.world.dt_s
-        new = np.where(ok[:, None], fix.positions, self.tag_fix)
+        new = np.where(ok[:, None], positions, self.tag_fix)
         had = np.isfinite(self.tag_fix).all(1) & ok
         elapsed = np.maximum(self.tag_fix_age_s + dt, dt)[:, None]
         self.tag_velocity = np.where(had[:, None], (new - np.nan_to_num(self.tag_fix)) / elapsed, self.tag_velocity)
         self.tag_fix = new
         self.tag_fix_age_s = np.where(ok, 0.0, self.tag_fix_age_s + dt)
         # Residual statistics: what a deployed system can see that its anchors went stale.
-        predicted = np.linalg.norm(fix.positions[:, None, :] - self.world.anchors_est[None], axis=-1)
+        predicted = np.linalg.norm(positions[:, None, :] - self.world.anchors_est[None], axis=-1)
         per_anchor = np.abs(predicted - ranges)
         per_anchor = np.where(np.isfinite(per_anchor) & ok[:, None], per_anchor, np.nan)
         i = self._hist_index % self.config.residual_window_steps
         if ok.any():
-            self._tag_residual_hist[i] = fix.residual_rms_m[ok].mean()
+            self._tag_residual_hist[i] = rms[ok].mean()
             seen = np.isfinite(per_anchor)
             counts = seen.sum(0)
             self._anchor_residual_hist[i] = np.where(seen, per_anchor, 0.0).sum(0) / np.maximum(counts, 1)
@@ -283,7 +299,15 @@ class LocalizationSystem:
         key = self.world.step_count
         if getattr(self, "_transform_key", None) != key:
             truth = self.world.to_estimate_frame(self.world.anchors_true)
-            self._transform = rigid_align(truth, self.world.anchors_est, allow_reflection=False)
+            if self.dim == 2:  # closed form: the rotation angle of the 2D Procrustes problem
+                mu_s, mu_t = truth.mean(0), self.world.anchors_est.mean(0)
+                a, b = truth - mu_s, self.world.anchors_est - mu_t
+                angle = np.arctan2((a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]).sum(), (a * b).sum())
+                c, s = np.cos(angle), np.sin(angle)
+                rot = np.array([[c, -s], [s, c]])
+                self._transform = rot, mu_t - rot @ mu_s
+            else:
+                self._transform = rigid_align(truth, self.world.anchors_est, allow_reflection=False)
             self._transform_key = key
         return self._transform
 

@@ -251,3 +251,53 @@ def _inverse_variance(base_var, base_iv, u, anchor_covariance, valid):
         return base_iv
     extra = np.einsum("tai,aij,taj->ta", u, anchor_covariance, u)
     return np.where(valid, 1.0 / (base_var + extra), 0.0)
+
+
+def track_tags_2d(anchors, previous, ranges_m, range_var_m2, anchor_covariance=None, loss="linear", f_scale=2.0,
+                  iterations=2):
+    """Warm-started planar Gauss-Newton for tracking: many groups of tags, each group against
+    its own anchors, in a few numpy calls per iteration (the environments' hot path).
+
+    Args:
+        anchors: (S, N, 2) anchor positions per group.
+        previous: (S, M, 2) previous fixes (finite), the starting points.
+        ranges_m: (S, M, N) ranges; NaN = missing.
+        range_var_m2: scalar variance of one range.
+        anchor_covariance: optional (S, N, 2, 2), folded into each range's variance.
+        loss, f_scale, iterations: robust loss (see ``robust``), its scale in sigmas, GN steps.
+
+    Returns:
+        (positions (S, M, 2), rms residual (S, M)); NaN where fewer than 3 ranges or not finite.
+    """
+    ax, ay = anchors[:, None, :, 0], anchors[:, None, :, 1]
+    px, py = previous[..., 0].copy(), previous[..., 1].copy()
+    valid = np.isfinite(ranges_m)
+    r = np.where(valid, ranges_m, 0.0)
+    enough = valid.sum(-1) >= 3
+    base_iv = np.where(valid, 1.0 / range_var_m2, 0.0)
+    if anchor_covariance is not None:
+        c00, c01, c11 = (anchor_covariance[:, None, :, 0, 0], anchor_covariance[:, None, :, 0, 1],
+                         anchor_covariance[:, None, :, 1, 1])
+    for _ in range(iterations):
+        dx, dy = px[..., None] - ax, py[..., None] - ay
+        dist = np.maximum(np.hypot(dx, dy), 1e-12)
+        ux, uy = dx / dist, dy / dist
+        if anchor_covariance is None:
+            iv = base_iv
+        else:  # var_i = sigma^2 + u^T Sigma_a u
+            iv = np.where(valid, 1.0 / (range_var_m2 + ux * ux * c00 + 2 * ux * uy * c01 + uy * uy * c11), 0.0)
+        res = np.where(valid, dist - r, 0.0)
+        w = iv if loss == "linear" else iv * irls_weights(res * np.sqrt(iv), loss, f_scale)
+        wx, wy = w * ux, w * uy
+        a, b, c = (wx * ux).sum(-1), (wx * uy).sum(-1), (wy * uy).sum(-1)
+        gx, gy = (wx * res).sum(-1), (wy * res).sum(-1)
+        det = a * c - b * b
+        det = np.where(enough & (det > 1e-300), det, np.inf)
+        px, py = px - (c * gx - b * gy) / det, py - (a * gy - b * gx) / det
+    res = np.where(valid, np.hypot(px[..., None] - ax, py[..., None] - ay) - r, 0.0)
+    rms = np.sqrt((res * res).sum(-1) / np.maximum(valid.sum(-1), 1))
+    pos = np.stack([px, py], axis=-1)
+    bad = ~enough | ~np.isfinite(pos).all(-1)
+    pos[bad] = np.nan
+    rms[bad] = np.nan
+    return pos, rms
