@@ -77,7 +77,7 @@ def main() -> None:
     fastest = (max(modes.values(), key=lambda item: item[1]) if a.mode == "fastest" else modes[a.mode])[0]
     targs = train.Args(algo="ppo", env=fastest[0], total_timesteps=10_000_000, seed=0, out=str(out),
                        vec_env=fastest[1], checkpoint_freq=50_000, eval_freq=50_000, eval_episodes=4,
-                       progress_bar=False, max_wall_s=budget)
+                       progress_bar=True, max_wall_s=budget)
     record = train.main(targs)
     # Model selection on the validation seeds (never the evaluation seeds): the EvalCallback's
     # best checkpoint when it beat the final model there.
