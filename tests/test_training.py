@@ -121,3 +121,9 @@ def test_learned_policy_refuses_a_team_of_another_size():
     env = parallel_env(sim={"n_anchors": 5})
     with pytest.raises(ValueError, match="another number of anchors"):
         policy.act(*env.reset(seed=0))
+
+
+def test_hp_overrides_keep_numbers_numbers():
+    hp = load_hyperparams(Args(hp=["learning_rate=1e-4", "policy_kwargs={net_arch: [32]}", "normalize=false"]))
+    assert hp["learning_rate"] == 1e-4 and isinstance(hp["learning_rate"], float)
+    assert hp["policy_kwargs"] == {"net_arch": [32]} and hp["normalize"] is False

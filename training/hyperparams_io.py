@@ -7,9 +7,21 @@ from pathlib import Path
 import yaml
 
 
+def parse_value(text: str):
+    """A command-line value: YAML (lists, booleans, ...), with ``1e-4`` read as a number
+    (YAML 1.1 wants ``1.0e-4`` for a float and would keep ``1e-4`` a string)."""
+    value = yaml.safe_load(text)
+    if isinstance(value, str):
+        try:
+            return float(value)
+        except ValueError:
+            return value
+    return value
+
+
 def load_block(path: str | Path, env_id: str, overrides: list[str]) -> dict:
     """The block for ``env_id`` in the YAML file ``path``, with ``key=value`` overrides
-    (values parsed as YAML, so ``1e-4``, ``[64, 64]`` and ``true`` keep their types)."""
+    (values parsed by :func:`parse_value`, so ``1e-4``, ``[64, 64]`` and ``true`` keep their types)."""
     with open(path) as f:
         table = yaml.safe_load(f) or {}
     if env_id not in table:
@@ -19,5 +31,5 @@ def load_block(path: str | Path, env_id: str, overrides: list[str]) -> dict:
         key, sep, value = item.partition("=")
         if not sep or not key:
             raise ValueError(f"hp={item!r}: expected key=value")
-        hp[key] = yaml.safe_load(value)
+        hp[key] = parse_value(value)
     return hp

@@ -23,7 +23,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import yaml
+
+from training.hyperparams_io import parse_value
 
 
 @dataclass
@@ -62,6 +63,7 @@ def _sb3_trial(config: dict) -> None:
 
     hp = [f"{k}={v}" for k, v in config["hp"].items()]
     record = train.main(train.Args(total_timesteps=config["total_timesteps"], out=config["out"], hp=hp,
+                                   env_config=config["env_config"],
                                    progress_bar=False, eval_freq=max(config["total_timesteps"] // 4, 1),
                                    checkpoint_freq=max(config["total_timesteps"] // 4, 1), tensorboard=False))
     tune.report({"best_eval_mean_reward": record.get("best_eval_mean_reward", float("nan")),
@@ -106,13 +108,17 @@ def main(args: Args) -> dict:
             key, sep, values = item.partition("=")
             if not sep:
                 raise ValueError(f"grid={item!r}: expected key=v1,v2")
-            grids[key] = [yaml.safe_load(v) for v in values.split(",")]
+            grids[key] = [parse_value(v) for v in values.split(",")]
         points = [dict(zip(grids, combo, strict=True)) for combo in itertools.product(*grids.values())] or [{}]
         space = {"hp": tune.grid_search(points), "total_timesteps": args.total_timesteps,
+                 "env_config": str(Path(args.config).resolve()) if args.config else None,
                  "out": tune.sample_from(lambda spec: str(out / "trials" / "_".join(
                      f"{k}={v}" for k, v in spec.config["hp"].items()) or "default"))}
         tuner = tune.Tuner(tune.with_resources(_sb3_trial, resources), param_space=space, run_config=run_config)
         grid = tuner.fit()
+        failed = [f"{r.config['hp']}: {r.error}" for r in grid if r.error]
+        if failed:
+            raise RuntimeError("SB3 sweep trials failed: " + "; ".join(failed))
         trials = sorted(({"hp": r.config["hp"], **{k: r.metrics[k] for k in ("best_eval_mean_reward",
                           "training_wall_s", "out")}} for r in grid), key=lambda t: -t["best_eval_mean_reward"])
         record = {"kind": "sb3", "trials": trials, "wall_s": time.perf_counter() - start}

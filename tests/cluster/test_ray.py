@@ -76,3 +76,15 @@ def test_cli_train_backend_rllib(tmp_path, short_episodes, capsys):
                  "--env-config", short_episodes, "--hp", *TINY]) == 0
     assert (out / "checkpoint" / "rllib_checkpoint.json").exists()
     assert "rllib:" in capsys.readouterr().out
+
+
+def test_sb3_hyperparameter_sweep_on_tune(tmp_path, short_episodes):
+    from training.sweep_tune import Args, main
+
+    out = tmp_path / "sb3"
+    record = main(Args(kind="sb3", grid=["learning_rate=1e-4,3e-4"], total_timesteps=256, config=short_episodes,
+                       out=str(out)))
+    assert [t["hp"]["learning_rate"] for t in sorted(record["trials"], key=lambda t: t["hp"]["learning_rate"])] \
+        == [1e-4, 3e-4]
+    assert all((tmp_path / "sb3" / "trials" / f"learning_rate={lr}" / "model.zip").exists() for lr in (1e-4, 3e-4))
+    assert json.loads((out / "sb3_sweep.json").read_text())["kind"] == "sb3"
