@@ -187,33 +187,40 @@ def _gauss_newton_nd(p, anchors, r, base_var, base_iv, valid, enough, anchor_cov
 
 
 def _gauss_newton_2d(p, anchors, r, base_var, base_iv, valid, enough, anchor_cov, loss, f_scale, iters, tol):
-    """Gauss-Newton for planar tags with the 2x2 normal equations written out (no einsum, no
-    batched LAPACK): the tracking hot path of the environment."""
-    ax, ay = anchors[:, 0], anchors[:, 1]
-    px, py = p[:, 0].copy(), p[:, 1].copy()
-    if anchor_cov is not None:
-        c00, c01, c11 = anchor_cov[:, 0, 0], anchor_cov[:, 0, 1], anchor_cov[:, 1, 1]
+    """Gauss-Newton for planar tags sharing one set of anchors (see :func:`_gn_steps_2d`)."""
+    cov = None if anchor_cov is None else (anchor_cov[:, 0, 0], anchor_cov[:, 0, 1], anchor_cov[:, 1, 1])
+    px, py, it = _gn_steps_2d(anchors[:, 0], anchors[:, 1], p[:, 0].copy(), p[:, 1].copy(), r, base_var, base_iv,
+                              valid, enough, cov, loss, f_scale, iters, tol)
+    return np.column_stack([px, py]), it
+
+
+def _gn_steps_2d(ax, ay, px, py, r, base_var, base_iv, valid, enough, cov, loss, f_scale, iters, tol):
+    """Planar Gauss-Newton steps with the 2x2 normal equations written out (no einsum, no
+    batched LAPACK): the tracking hot path. Anchor coordinates ``ax, ay`` broadcast against
+    the tag axis (shared anchors, or one set per group of tags); ``cov`` is the anchors'
+    (c00, c01, c11) covariance entries or None; stops early once every step is below ``tol``."""
     it = 0
     for it in range(1, iters + 1):
-        dx, dy = px[:, None] - ax, py[:, None] - ay
+        dx, dy = px[..., None] - ax, py[..., None] - ay
         dist = np.maximum(np.hypot(dx, dy), 1e-12)
         ux, uy = dx / dist, dy / dist
-        if anchor_cov is None:
+        if cov is None:
             iv = base_iv
         else:  # var_i = sigma^2 + u^T Sigma_a u
+            c00, c01, c11 = cov
             iv = np.where(valid, 1.0 / (base_var + ux * ux * c00 + 2 * ux * uy * c01 + uy * uy * c11), 0.0)
-        res = dist - r
+        res = np.where(valid, dist - r, 0.0)
         w = iv if loss == "linear" else iv * irls_weights(res * np.sqrt(iv), loss, f_scale)
         wx, wy = w * ux, w * uy
-        a, b, c = (wx * ux).sum(1), (wx * uy).sum(1), (wy * uy).sum(1)
-        gx, gy = (wx * res).sum(1), (wy * res).sum(1)
+        a, b, c = (wx * ux).sum(-1), (wx * uy).sum(-1), (wy * uy).sum(-1)
+        gx, gy = (wx * res).sum(-1), (wy * res).sum(-1)
         det = a * c - b * b
         det = np.where(enough & (det > 1e-300), det, np.inf)
         sx, sy = -(c * gx - b * gy) / det, -(a * gy - b * gx) / det
         px, py = px + sx, py + sy
-        if max(np.abs(sx).max(), np.abs(sy).max()) < tol:
+        if tol is not None and max(np.abs(sx).max(), np.abs(sy).max()) < tol:
             break
-    return np.column_stack([px, py]), it
+    return px, py, it
 
 
 def _light_result(p, anchors, r, valid, n_ranges, enough, iterations):
@@ -270,30 +277,14 @@ def track_tags_2d(anchors, previous, ranges_m, range_var_m2, anchor_covariance=N
         (positions (S, M, 2), rms residual (S, M)); NaN where fewer than 3 ranges or not finite.
     """
     ax, ay = anchors[:, None, :, 0], anchors[:, None, :, 1]
-    px, py = previous[..., 0].copy(), previous[..., 1].copy()
     valid = np.isfinite(ranges_m)
     r = np.where(valid, ranges_m, 0.0)
     enough = valid.sum(-1) >= 3
     base_iv = np.where(valid, 1.0 / range_var_m2, 0.0)
-    if anchor_covariance is not None:
-        c00, c01, c11 = (anchor_covariance[:, None, :, 0, 0], anchor_covariance[:, None, :, 0, 1],
-                         anchor_covariance[:, None, :, 1, 1])
-    for _ in range(iterations):
-        dx, dy = px[..., None] - ax, py[..., None] - ay
-        dist = np.maximum(np.hypot(dx, dy), 1e-12)
-        ux, uy = dx / dist, dy / dist
-        if anchor_covariance is None:
-            iv = base_iv
-        else:  # var_i = sigma^2 + u^T Sigma_a u
-            iv = np.where(valid, 1.0 / (range_var_m2 + ux * ux * c00 + 2 * ux * uy * c01 + uy * uy * c11), 0.0)
-        res = np.where(valid, dist - r, 0.0)
-        w = iv if loss == "linear" else iv * irls_weights(res * np.sqrt(iv), loss, f_scale)
-        wx, wy = w * ux, w * uy
-        a, b, c = (wx * ux).sum(-1), (wx * uy).sum(-1), (wy * uy).sum(-1)
-        gx, gy = (wx * res).sum(-1), (wy * res).sum(-1)
-        det = a * c - b * b
-        det = np.where(enough & (det > 1e-300), det, np.inf)
-        px, py = px - (c * gx - b * gy) / det, py - (a * gy - b * gx) / det
+    cov = None if anchor_covariance is None else tuple(anchor_covariance[:, None, :, i, j]
+                                                       for i, j in ((0, 0), (0, 1), (1, 1)))
+    px, py, _ = _gn_steps_2d(ax, ay, previous[..., 0].copy(), previous[..., 1].copy(), r, range_var_m2, base_iv,
+                             valid, enough, cov, loss, f_scale, iterations, None)
     res = np.where(valid, np.hypot(px[..., None] - ax, py[..., None] - ay) - r, 0.0)
     rms = np.sqrt((res * res).sum(-1) / np.maximum(valid.sum(-1), 1))
     pos = np.stack([px, py], axis=-1)
