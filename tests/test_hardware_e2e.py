@@ -79,8 +79,12 @@ def test_truncated_rows_fail_the_round_and_garbage_does_not_break_the_tags():
             with pytest.raises(RoundFailed, match="round 1 failed"):
                 TiersAnchorDriver(port).run_round()
         with SerialTransport(urls["tag_1"]) as port:
-            loc = PansTlvDriver(port).loc_get()
+            tlv_driver = PansTlvDriver(port)
+            loc = tlv_driver.loc_get()
             assert len(loc.distances) >= 3 and loc.node == "tag"
+            tlv_driver.update_rate_set(2, 10)
+            assert tlv_driver.update_rate_get() == (2, 10)
+            assert tlv_driver.cfg_get()["mode"] == "tag"
 
 
 def test_unplug_mid_round_then_replug_the_episode_continues(tmp_path):

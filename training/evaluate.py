@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import functools
 import json
 import multiprocessing
 import os
@@ -94,19 +95,25 @@ def _env_config(overrides: dict, max_cycles: int):
 
 def run_episode(spec: str, seed: int, config_dict: dict) -> dict:
     """One episode of ``spec`` on seed ``seed``; returns its summary and per-step traces."""
-    from agents.registry import make_policy
     from uwb_env.config import EnvConfig
     from uwb_env.env.parallel_env import UWBCalibrationParallelEnv
     from uwb_env.env.policy import rollout
 
     config = EnvConfig.from_dict(config_dict)
     env = UWBCalibrationParallelEnv(config)
-    policy = make_policy(spec, config.sim.dt_s)
+    policy = _cached_policy(spec, config.sim.dt_s)  # reset() by rollout; a saved model is read once
     result = rollout(env, policy, seed=seed)
     return {
         "policy": spec, "seed": seed, "uses_ground_truth": bool(policy.uses_ground_truth),
         **result.summary(), "tag_error_trace": result.tag_error_m, "anchor_error_trace": result.anchor_error_m,
     }
+
+
+@functools.lru_cache(maxsize=64)
+def _cached_policy(spec: str, dt_s: float):
+    from agents.registry import make_policy
+
+    return make_policy(spec, dt_s)
 
 
 def _run_star(job):

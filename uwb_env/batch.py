@@ -21,8 +21,7 @@ import numpy as np
 from uwb_env.config import EnvConfig
 from uwb_env.localization import calibrate_anchors, locate_tags, rigid_align
 from uwb_env.localization.errors import LocalizationError
-from uwb_env.localization.multilateration import track_tags_2d
-from uwb_env.measurements import RangeMatrix
+from uwb_env.localization.multilateration import refit_stuck_tags, track_tags_2d
 from uwb_env.sim import World
 from uwb_env.sim.calibration_round import CalibrationRound
 from uwb_env.sim.motion import MotionModel
@@ -66,9 +65,9 @@ class BatchedSystem:
         placer = World(cfg.sim, self.range_model)
         anchors, tags = [], []
         for _ in range(B):
-            a = placer._initial_anchors(rng)
+            a = placer.initial_anchors(rng)
             anchors.append(a)
-            tags.append(placer._initial_tags(a, rng))
+            tags.append(placer.initial_tags(a, rng))
         self.motion.reset(np.vstack(anchors + tags), rng)
         self.odometry.reset(B * N, rng)
         self.time_s, self.step_count = 0.0, 0
@@ -100,7 +99,7 @@ class BatchedSystem:
         true_mid = 0.5 * (true_start + self.anchors_true)
         for k in range(B):
             result = calibrate_anchors(
-                self._corrected(self.rounds[k].result()), dim=2, loss=cfg.solver.loss,
+                self.range_model.correct_matrix(self.rounds[k].result()), dim=2, loss=cfg.solver.loss,
                 f_scale=cfg.solver.f_scale_sigmas, range_std_m=self.range_std_m)
             rot, trans = rigid_align(true_mid[k], result.positions)
             self.frame_rot[k], self.frame_origin[k] = rot, -rot.T @ trans
@@ -164,17 +163,14 @@ class BatchedSystem:
         self.rounds[k] = CalibrationRound(self.N, self.timing, k_pairs, self.time_s)
         self.est_at_round_start[k] = self.anchors_est[k]
 
-    def _corrected(self, matrix: RangeMatrix) -> RangeMatrix:
-        return RangeMatrix(self.range_model.correct(matrix.mean_m), self.range_model.correct_std(matrix.std_m),
-                           matrix.count)
-
     def _finish_round(self, k: int) -> bool:
         rnd, self.rounds[k] = self.rounds[k], None
         solver = self.config.solver
         est_mid = 0.5 * (self.est_at_round_start[k] + self.anchors_est[k])
         try:
-            result = calibrate_anchors(self._corrected(rnd.result()), dim=2, prior=est_mid, gauge=solver.gauge,
-                                       loss=solver.loss, f_scale=solver.f_scale_sigmas, range_std_m=self.range_std_m)
+            result = calibrate_anchors(self.range_model.correct_matrix(rnd.result()), dim=2, prior=est_mid,
+                                       gauge=solver.gauge, loss=solver.loss, f_scale=solver.f_scale_sigmas,
+                                       range_std_m=self.range_std_m)
         except LocalizationError:
             return False
         self._apply(k, result, self.anchors_est[k] - est_mid)
@@ -219,14 +215,9 @@ class BatchedSystem:
         else:
             pos, rms = self._gauss_newton(sel, ranges[sel], None if cov is None else cov[sel])
             restart = solver.tag_restart_residual_m + 2.0 * np.sqrt(pred_var[sel].max(axis=1))
-            for row, k in enumerate(sel):
-                stuck = ~(rms[row] <= restart[row])
-                if stuck.any():  # rare: re-solve this copy's stuck tags from the closed form
-                    again = locate_tags(self.anchors_est[k], ranges[k][stuck], self.range_std_m,
-                                        with_covariance=False, anchor_covariance=None if cov is None else cov[k])
-                    better = again.ok & ~(again.residual_rms_m >= rms[row][stuck])
-                    idx = np.flatnonzero(stuck)[better]
-                    pos[row][idx], rms[row][idx] = again.positions[better], again.residual_rms_m[better]
+            for row, k in enumerate(sel):  # rare: re-solve a copy's stuck tags from the closed form
+                refit_stuck_tags(self.anchors_est[k], ranges[k], pos[row], rms[row], restart[row], self.range_std_m,
+                                 None if cov is None else cov[k], solver.loss, solver.f_scale_sigmas)
         ok = np.isfinite(pos).all(axis=2)
         old = self.tag_fix[sel]
         new = np.where(ok[..., None], pos, old)

@@ -19,8 +19,7 @@ import numpy as np
 
 from uwb_env.config import EnvConfig
 from uwb_env.localization import LocalizationError, calibrate_anchors, locate_tags, rigid_align
-from uwb_env.localization.multilateration import track_tags_2d
-from uwb_env.measurements import RangeMatrix
+from uwb_env.localization.multilateration import refit_stuck_tags, track_tags_2d
 from uwb_env.sim import RangeModel, World
 
 OBS_FIELDS = (
@@ -92,8 +91,8 @@ class LocalizationSystem:
         true_start, est_start = self.world.anchors_true.copy(), self.world.anchors_est.copy()
         matrix, _ = self.world.run_calibration_round()
         result = calibrate_anchors(
-            self._corrected(matrix), dim=dim, loss=cfg.solver.loss, f_scale=cfg.solver.f_scale_sigmas,
-            range_std_m=self.range_std_m,
+            self.world.round_correction.correct_matrix(matrix), dim=dim, loss=cfg.solver.loss,
+            f_scale=cfg.solver.f_scale_sigmas, range_std_m=self.range_std_m,
         )
         # The solution describes the robots around the round's midpoint; the solver's frame
         # becomes the estimate frame: est = R (world - origin).
@@ -156,10 +155,6 @@ class LocalizationSystem:
             return k > self.n_anchors / 2
         return k == self.n_anchors
 
-    def _corrected(self, matrix: RangeMatrix) -> RangeMatrix:
-        return RangeMatrix(self.range_model.correct(matrix.mean_m), self.range_model.correct_std(matrix.std_m),
-                           matrix.count)
-
     def _finish_round(self) -> str | None:
         finished = self.world.finish_calibration_round()
         solver = self.config.solver
@@ -170,7 +165,7 @@ class LocalizationSystem:
         try:
             matrix = finished.result()  # on hardware: raises when the round failed
             result = calibrate_anchors(
-                self._corrected(matrix), dim=self.dim, prior=est_mid, gauge=solver.gauge,
+                self.world.round_correction.correct_matrix(matrix), dim=self.dim, prior=est_mid, gauge=solver.gauge,
                 loss=solver.loss, f_scale=solver.f_scale_sigmas, range_std_m=self.range_std_m,
             )
         except LocalizationError as err:  # e.g. dropouts disconnected the graph: keep odometry
@@ -202,7 +197,7 @@ class LocalizationSystem:
             return
         raw = self.world.measure_tag_ranges().T  # (tags, anchors)
         # Noise can push a corrected range below zero next to an anchor: a valid reading of ~0.
-        ranges = np.maximum(self.range_model.correct(raw), 0.0)  # the hardware world pre-adjusts per firmware
+        ranges = np.maximum(self.world.tag_correction.correct(raw), 0.0)
         solver = self.config.solver
         cov = None
         if solver.use_anchor_covariance:
@@ -217,13 +212,8 @@ class LocalizationSystem:
                                            self.range_std_m ** 2, None if cov is None else cov[None], solver.loss,
                                            solver.f_scale_sigmas, solver.tag_iterations)
             positions, rms = positions[0], rms[0]
-            stuck = ~(rms <= restart_m)
-            if stuck.any():
-                again = locate_tags(self.world.anchors_est, ranges[stuck], self.range_std_m, anchor_covariance=cov,
-                                    loss=solver.loss, f_scale=solver.f_scale_sigmas, with_covariance=False)
-                better = again.ok & ~(again.residual_rms_m >= rms[stuck])
-                idx = np.flatnonzero(stuck)[better]
-                positions[idx], rms[idx] = again.positions[better], again.residual_rms_m[better]
+            refit_stuck_tags(self.world.anchors_est, ranges, positions, rms, restart_m, self.range_std_m, cov,
+                             solver.loss, solver.f_scale_sigmas)
             ok = np.isfinite(positions).all(1)
         else:
             fix = locate_tags(

@@ -93,6 +93,9 @@ class HardwareWorld(RoundRunner):
         self.anchor, self.tags = anchor, tags
         self.anchor_ids = anchor_ids or [anchor_id4(i) for i in range(config.n_anchors)]
         self.range_model = range_model or RangeModel(config.ranging)
+        # What the estimator undoes, per firmware (stock PANS is usually antenna-delay calibrated).
+        self.tag_correction = self._correction(self.hardware.pans_correct_bias)
+        self.round_correction = self._correction(self.hardware.tiers_correct_bias)
         self.timing = RoundTiming.fit(config.calibration)
         self.odometry = OdometryModel(config.odometry)  # its variance model predicts the drift
         self.odometry_source = odometry_source
@@ -144,6 +147,11 @@ class HardwareWorld(RoundRunner):
             rnd.matrix = RangeMatrix(np.where(valid, message.mean_m, np.nan), np.where(valid, message.std_m, np.nan),
                                      np.where(valid, k, 0))
 
+    def _correction(self, correct_bias: bool) -> RangeModel:
+        if correct_bias == self.range_model.config.correct_bias:
+            return self.range_model
+        return RangeModel(self.config.ranging.replace(correct_bias=correct_bias))
+
     # -- the World interface -------------------------------------------------------------------
     def set_estimate_frame(self, rotation: np.ndarray, origin: np.ndarray) -> None:
         self.frame_rotation, self.frame_origin = rotation, origin
@@ -162,8 +170,6 @@ class HardwareWorld(RoundRunner):
             for r in report.ranges:
                 if r.anchor_id in self.anchor_ids:
                     out[self.anchor_ids.index(r.anchor_id), t] = r.distance_m
-        if not self.hardware.pans_correct_bias:
-            out = self._undo_correction(out)
         return out
 
     def start_calibration_round(self, measurements_per_pair: int | None = None) -> HardwareRound:
@@ -177,16 +183,7 @@ class HardwareWorld(RoundRunner):
         if self.round is None or not self.round.done:
             raise RuntimeError("no finished calibration round to collect")
         finished, self.round = self.round, None
-        if finished.matrix is not None and not self.hardware.tiers_correct_bias:
-            m = finished.matrix
-            finished.matrix = RangeMatrix(self._undo_correction(m.mean_m), m.std_m, m.count)
         return finished
-
-    def _undo_correction(self, ranges: np.ndarray) -> np.ndarray:
-        # The system corrects every range with the fitted model; for firmware whose ranges are
-        # already unbiased, hand it the values that its correction maps back to themselves.
-        fit = self.range_model.fit
-        return fit.slope * ranges + fit.offset_m
 
     def close(self) -> None:
         for transport in {self.anchor.transport, *(t.transport for t in self.tags)}:

@@ -260,6 +260,21 @@ def _inverse_variance(base_var, base_iv, u, anchor_covariance, valid):
     return np.where(valid, 1.0 / (base_var + extra), 0.0)
 
 
+def refit_stuck_tags(anchors, ranges_m, positions, rms, threshold_m, range_std_m, anchor_covariance=None,
+                     loss="linear", f_scale=2.0) -> None:
+    """In place: tags whose tracked fix has an RMS residual above ``threshold_m`` (or none) are
+    solved again from the closed form; the lower residual wins. For one set of anchors (N, dim),
+    ``ranges_m`` (M, N), ``positions`` (M, dim), ``rms`` (M,)."""
+    stuck = ~(rms <= threshold_m)
+    if not stuck.any():
+        return
+    again = locate_tags(anchors, ranges_m[stuck], range_std_m, anchor_covariance=anchor_covariance, loss=loss,
+                        f_scale=f_scale, with_covariance=False)
+    better = again.ok & ~(again.residual_rms_m >= rms[stuck])
+    idx = np.flatnonzero(stuck)[better]
+    positions[idx], rms[idx] = again.positions[better], again.residual_rms_m[better]
+
+
 def track_tags_2d(anchors, previous, ranges_m, range_var_m2, anchor_covariance=None, loss="linear", f_scale=2.0,
                   iterations=2):
     """Warm-started planar Gauss-Newton for tracking: many groups of tags, each group against

@@ -108,6 +108,12 @@ class RangeModel:
             return np.asarray(measured_m, dtype=float)
         return (np.asarray(measured_m, dtype=float) - self.offset_m) / self.slope
 
+    def correct_matrix(self, matrix):
+        """A round's :class:`~uwb_env.measurements.RangeMatrix` with means and stds corrected."""
+        from uwb_env.measurements import RangeMatrix
+
+        return RangeMatrix(self.correct(matrix.mean_m), self.correct_std(matrix.std_m), matrix.count)
+
     def correct_std(self, std_m: np.ndarray) -> np.ndarray:
         """Map a measured-range std to the std of the corrected range."""
         if not self.config.correct_bias:

@@ -63,8 +63,8 @@ class World(RoundRunner):
         self.rng = rng
         self.time_s = 0.0
         self.step_count = 0
-        anchors = self._initial_anchors(rng)
-        self.motion.reset(np.vstack([anchors, self._initial_tags(anchors, rng)]), rng)
+        anchors = self.initial_anchors(rng)
+        self.motion.reset(np.vstack([anchors, self.initial_tags(anchors, rng)]), rng)
         self.odometry.reset(cfg.n_anchors, rng)
         self.set_estimate_frame(np.eye(cfg.dim), np.zeros(cfg.dim))
         self.anchors_est = anchors.copy()
@@ -131,7 +131,17 @@ class World(RoundRunner):
         return np.linalg.norm(self.anchors_est - self.to_estimate_frame(self.anchors_true), axis=1)
 
     # -- placement -------------------------------------------------------------------------
-    def _initial_anchors(self, rng: np.random.Generator) -> np.ndarray:
+    @property
+    def tag_correction(self) -> RangeModel:
+        """The bias model the estimator undoes on tag ranges (the hardware world: per firmware)."""
+        return self.range_model
+
+    @property
+    def round_correction(self) -> RangeModel:
+        """The bias model the estimator undoes on calibration-round ranges."""
+        return self.range_model
+
+    def initial_anchors(self, rng: np.random.Generator) -> np.ndarray:
         cfg = self.config
         n, size = cfg.n_anchors, cfg.area_size_m
         # Spread anchors around the area's border (corners first for n = 4), counter-clockwise.
@@ -143,7 +153,7 @@ class World(RoundRunner):
         xy = np.clip(xy, 0.0, size)
         return self._with_height(xy, rng)
 
-    def _initial_tags(self, anchors: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    def initial_tags(self, anchors: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         cfg = self.config
         # Convex combinations of the anchors stay inside their polygon (the paper's setup).
         weights = rng.dirichlet(np.ones(cfg.n_anchors), cfg.n_tags)
