@@ -39,6 +39,20 @@ def median_time_s(fn: Callable[[], object], repeats: int) -> float:
     return times[len(times) // 2]
 
 
+def interleaved_median_times_s(fns: list[Callable[[], object]], repeats: int, block: int = 10) -> list[float]:
+    """Median seconds per call of each of ``fns``, timed in alternating blocks of ``block``
+    calls: drifts in machine speed hit all of them alike (a fair side-by-side ratio on a noisy
+    VM), while each function still runs warm, as it would in a loop of its own."""
+    times: list[list[float]] = [[] for _ in fns]
+    for _ in range(max(1, repeats // block)):
+        for fn, out in zip(fns, times, strict=True):
+            for _ in range(block):
+                t = time.perf_counter()
+                fn()
+                out.append(time.perf_counter() - t)
+    return [sorted(t)[len(t) // 2] for t in times]
+
+
 def print_table(title: str, header: list[str], rows: list[list[object]]) -> None:
     cells = [[str(c) for c in header]] + [[f"{c:.4g}" if isinstance(c, float) else str(c) for c in r] for r in rows]
     widths = [max(len(r[i]) for r in cells) for i in range(len(header))]

@@ -23,7 +23,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import median_time_s, print_table, write_results  # noqa: E402
+from _common import interleaved_median_times_s, median_time_s, print_table, write_results  # noqa: E402
 
 from uwb_env.localization import aligned_errors, calibrate_anchors, crlb_anchors, crlb_tags, locate_tags, paper_frame  # noqa: E402
 from uwb_env.localization.calibration import _free_mask, trilaterate_initial  # noqa: E402
@@ -117,7 +117,7 @@ def main(argv=None) -> dict:
     parser.add_argument("--quick", action="store_true")
     args = parser.parse_args(argv)
     trials = 150 if args.quick else 1500
-    repeats = 15 if args.quick else 101
+    repeats = 31 if args.quick else 301
     rng = np.random.default_rng(0)
     fig: dict = {}
 
@@ -148,8 +148,8 @@ def main(argv=None) -> dict:
         x = anchors_layout(n, rng)
         m = round_matrix(x, rng)
         reps = repeats if n < 32 else max(5, repeats // 5)
-        ours = median_time_s(lambda m=m: calibrate_anchors(m, range_std_m=SIGMA), reps)
-        ref = median_time_s(lambda m=m: scipy_calibrate(m), max(5, reps // 3))
+        ours, ref = interleaved_median_times_s(
+            [lambda m=m: calibrate_anchors(m, range_std_m=SIGMA), lambda m=m: scipy_calibrate(m)], reps)
         a = calibrate_anchors(m, range_std_m=SIGMA).positions
         b = scipy_calibrate(m)
         fig[f"calibrate_ms_n{n}"] = ours * 1e3

@@ -3,8 +3,18 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
+
+
+@lru_cache(maxsize=64)
+def _pair_index(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unordered pairs i < j of n anchors, and the flat indices of (i, j) and (j, i)."""
+    iu, ju = np.triu_indices(n, 1)
+    pairs = np.column_stack([iu, ju])
+    pairs.flags.writeable = False  # shared between calls: callers must not modify it
+    return pairs, iu * n + ju, ju * n + iu
 
 
 @dataclass(frozen=True)
@@ -25,34 +35,45 @@ class RangeMatrix:
     def n_anchors(self) -> int:
         return self.mean_m.shape[0]
 
-    def symmetric(self, min_std_m: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def symmetric(
+        self, min_std_m: float = 0.0, std_m: float | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Combine both directions of each unordered pair i < j.
+
+        Args:
+            min_std_m: floor on each direction's sample std.
+            std_m: if given, a known std for every range, in place of the sample stds.
 
         Returns:
             (pairs (P, 2) int, mean (P,), variance of the mean (P,)), only pairs with data.
             The variance is max(std, min_std)^2 / count, pooled inverse-variance over both
             directions.
         """
-        n = self.n_anchors
-        iu, ju = np.triu_indices(n, 1)
-        means = np.stack([self.mean_m[iu, ju], self.mean_m[ju, iu]])
-        stds = np.maximum(np.stack([self.std_m[iu, ju], self.std_m[ju, iu]]), min_std_m)
-        counts = np.stack([self.count[iu, ju], self.count[ju, iu]]).astype(float)
+        pairs, upper, lower = _pair_index(self.n_anchors)
+        mean_flat, count_flat = self.mean_m.ravel(), self.count.ravel()
+        means = np.stack([mean_flat.take(upper), mean_flat.take(lower)])
+        counts = np.stack([count_flat.take(upper), count_flat.take(lower)]).astype(float)
         valid = (counts > 0) & np.isfinite(means)
+        means = np.where(valid, means, 0.0)
         with np.errstate(divide="ignore", invalid="ignore"):
-            info = np.where(valid, counts / np.maximum(stds, 1e-12) ** 2, 0.0)
+            if std_m is not None:
+                info = np.where(valid, counts, 0.0) / (std_m * std_m)
+            else:
+                std_flat = self.std_m.ravel()
+                stds = np.maximum(np.stack([std_flat.take(upper), std_flat.take(lower)]), min_std_m)
+                info = np.where(valid, counts / np.maximum(stds, 1e-12) ** 2, 0.0)
             total = info.sum(axis=0)
-            mean = np.where(valid, means, 0.0)
-            mean = (info * mean).sum(axis=0) / total
+            mean = (info * means).sum(axis=0) / total
             # Pairs with valid data but zero std everywhere (min_std 0): plain average.
             flat = (total == np.inf) | np.isnan(mean)
             if flat.any():
                 k = valid.sum(axis=0)
-                plain = np.where(valid, means, 0.0).sum(axis=0) / np.maximum(k, 1)
-                mean = np.where(flat, plain, mean)
+                mean = np.where(flat, means.sum(axis=0) / np.maximum(k, 1), mean)
             var = np.where(total > 0, 1.0 / total, np.inf)
         keep = valid.any(axis=0)
-        return np.column_stack([iu, ju])[keep], mean[keep], var[keep]
+        if keep.all():
+            return pairs, mean, var
+        return pairs[keep], mean[keep], var[keep]
 
     @staticmethod
     def from_samples(n: int, initiator: np.ndarray, responder: np.ndarray, ranges_m: np.ndarray):

@@ -26,6 +26,7 @@ it is the uncertainty of the shape with the gauge (anchor 0, the x axis) held fi
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 from scipy.sparse.csgraph import shortest_path
@@ -37,10 +38,9 @@ from uwb_env.localization.errors import (
     InvalidRangeError,
     TooFewAnchorsError,
 )
-from uwb_env.localization.least_squares import levenberg_marquardt
-from uwb_env.localization.models import PairRangeModel
+from uwb_env.localization.pair_solver import PairStructure, pair_structure, solve_pair_ranges
 from uwb_env.localization.robust import check_loss
-from uwb_env.measurements import RangeMatrix
+from uwb_env.measurements import RangeMatrix, _pair_index
 
 GAUGES = ("anchor0", "prior")
 INITIALIZERS = ("auto", "trilateration", "mds")
@@ -143,7 +143,8 @@ def calibrate_anchors(
     pairs, dist, var, n = _pair_data(ranges, range_std_m, min_range_std_m)
     if n < dim + 1:
         raise TooFewAnchorsError(f"{n} anchors: a {dim}D calibration needs at least {dim + 1}")
-    _check_connected(pairs, n)
+    if len(pairs) < n * (n - 1) // 2:
+        _check_connected(pairs, n)
     if prior is not None:
         prior = np.asarray(prior, dtype=float)
         if prior.shape != (n, dim) or not np.isfinite(prior).all():
@@ -151,35 +152,33 @@ def calibrate_anchors(
 
     if prior is None:
         x0, init_name = _initial_positions(pairs, dist, n, dim, initializer)
-        refs = frame_refs(x0)
-        to_gauge = paper_frame(x0, refs)
+        if dim == 2 and init_name == "trilateration":
+            # Trilateration already places anchor 0 at the origin and anchor 1 on +x: that is
+            # the internal gauge, up to the mirror image the final sign rule settles.
+            refs, x0_gauge = (0, 1), x0
+        else:
+            refs = frame_refs(x0)
+            rot0, trans0 = paper_frame(x0, refs)
+            x0_gauge = x0 @ rot0.T + trans0
     else:
         refs = _gauge_refs(prior)
         x0, init_name = prior, "prior"
-        to_gauge = paper_frame(prior, refs)
-    x0_gauge = x0 @ to_gauge[0].T + to_gauge[1]
+        rot0, trans0 = paper_frame(prior, refs)
+        x0_gauge = x0 @ rot0.T + trans0
 
-    free = _free_mask(n, dim, refs)
-    model = PairRangeModel(pairs, n)
-    template = np.zeros(n * dim)
-
-    def residual_and_jacobian(theta: np.ndarray):
-        template[free] = theta
-        x = template.reshape(n, dim)
-        return model.evaluate(x) - dist, model.jacobian(x)[:, free]
+    structure = _structure(pairs, n, dim, refs)
+    inv_var = 1.0 / var
 
     def solve(start_gauge: np.ndarray):
-        template[:] = np.where(free, 0.0, start_gauge.ravel())
-        theta0 = start_gauge.ravel()[free]
         if loss != "linear":
             # Robust losses are non-convex: start them from the plain least-squares solution so
             # an outlier-corrupted initial guess does not trap them in a wrong minimum.
-            theta0 = levenberg_marquardt(residual_and_jacobian, theta0, 1.0 / var, "linear", 1.0,
-                                         max_iterations).theta
-        return levenberg_marquardt(residual_and_jacobian, theta0, 1.0 / var, loss, f_scale, max_iterations)
+            start_gauge = solve_pair_ranges(structure, start_gauge, dist, inv_var, "linear", 1.0,
+                                            max_iterations).positions
+        return solve_pair_ranges(structure, start_gauge, dist, inv_var, loss, f_scale, max_iterations)
 
     out = solve(x0_gauge)
-    if prior is not None and np.max(np.abs(out.residuals) / np.sqrt(var)) > restart_sigmas:
+    if prior is not None and float(np.max(np.abs(out.residuals) * np.sqrt(inv_var))) > restart_sigmas:
         # A prior far off (long drift) can sit in the basin of a folded shape (one anchor
         # mirrored across a line through two others): the residuals then stay metres large.
         # Restart from the ranges alone, in the same gauge, and keep the lower cost.
@@ -188,22 +187,24 @@ def calibrate_anchors(
         out_cold = solve(cold @ rot_c.T + trans_c)
         if out_cold.cost < out.cost:
             out, init_name = out_cold, "prior+" + cold_name
-    template[:] = np.where(free, 0.0, x0_gauge.ravel())
-    template[free] = out.theta
-    x_gauge = template.reshape(n, dim).copy()
-    cov_gauge = _covariance(out.information, free, n, dim)
+    x_gauge = out.positions
+    cov_gauge = out.covariance()
 
     if prior is None:
         # Re-apply the frame's sign rules to the solution (only axis flips here): the cost is
         # mirror-invariant, so the optimizer may have crossed to the other side.
-        flip, _ = paper_frame(x_gauge, refs)
-        rot, trans = np.diag(np.sign(np.diag(flip))), np.zeros(dim)  # exact +-1: no leakage
+        signs = _gauge_flip(x_gauge, refs)
+        if signs is None:
+            positions, covariance = x_gauge, cov_gauge
+        else:
+            positions = x_gauge * signs
+            flips = np.tile(signs, n)
+            covariance = cov_gauge * flips[:, None] * flips[None, :]  # exact +-1: no leakage
     else:
         pivot = 0 if gauge == "anchor0" else None
         rot, trans = rigid_align(x_gauge, prior, allow_reflection=True, pivot=pivot)
-    positions = x_gauge @ rot.T + trans
-    big_rot = np.kron(np.eye(n), rot)
-    covariance = big_rot @ cov_gauge @ big_rot.T
+        positions = x_gauge @ rot.T + trans
+        covariance = _rotate_covariance(cov_gauge, rot, n, dim)
     return CalibrationResult(
         positions=positions,
         covariance=covariance,
@@ -220,9 +221,36 @@ def calibrate_anchors(
     )
 
 
+def _gauge_flip(x_gauge: np.ndarray, refs: tuple[int, ...]) -> np.ndarray | None:
+    """(dim,) axis signs that put a gauge-frame solution in the paper frame, None if none flip.
+
+    The gauge anchors are where ``paper_frame`` puts them (origin, +-x axis, xy-plane), so its
+    rotation is diagonal. Degenerate shapes never get here: their information matrix is
+    singular, which ``PairSolution.covariance`` reports.
+    """
+    if x_gauge.shape[1] == 3:
+        signs = np.diag(paper_frame(x_gauge, refs)[0]).copy()
+        return None if signs.min() > 0 else signs
+    origin = x_gauge[refs[0]]
+    sx = 1.0 if x_gauge[refs[1], 0] >= origin[0] else -1.0
+    sy = 1.0 if float(x_gauge[:, 1].sum()) >= len(x_gauge) * origin[1] else -1.0
+    return None if sx > 0 and sy > 0 else np.array([sx, sy])
+
+
+def _rotate_covariance(cov: np.ndarray, rot: np.ndarray, n: int, dim: int) -> np.ndarray:
+    """Covariance of x @ rot.T per anchor: (I_n kron R) cov (I_n kron R)^T."""
+    left = np.matmul(rot, cov.reshape(n, dim, n * dim)).reshape(n * dim, n, dim)
+    return np.matmul(left, rot.T).reshape(n * dim, n * dim)
+
+
 # -- input handling ----------------------------------------------------------------------------
 def _pair_data(ranges, range_std_m, min_range_std_m):
+    if range_std_m is not None and not (np.isfinite(range_std_m) and range_std_m > 0):
+        raise ValueError(f"range_std_m={range_std_m!r}: must be > 0")
     if isinstance(ranges, RangeMatrix):
+        fast = _complete_pair_data(ranges, range_std_m, min_range_std_m)
+        if fast is not None:
+            return fast
         mean, count = np.asarray(ranges.mean_m, float), np.asarray(ranges.count)
         bad = (count > 0) & ~np.isfinite(mean)
         if bad.any():
@@ -244,20 +272,45 @@ def _pair_data(ranges, range_std_m, min_range_std_m):
         upper = np.triu(np.isfinite(sym), 1)
         std = np.full(mean.shape, range_std_m if range_std_m is not None else min_range_std_m)
         matrix = RangeMatrix(np.where(upper, sym, np.nan), std, upper.astype(int))
-    off = ~np.eye(mean.shape[0], dtype=bool)
-    negative = off & np.isfinite(mean) & (mean < 0)
-    if negative.any():
-        i, j = np.argwhere(negative)[0]
-        raise InvalidRangeError(f"range ({i}, {j}) = {mean[i, j]!r}: negative")
+    if np.any(mean < 0):  # NaN compares False
+        negative = (mean < 0) & ~np.eye(mean.shape[0], dtype=bool)
+        if negative.any():
+            i, j = np.argwhere(negative)[0]
+            raise InvalidRangeError(f"range ({i}, {j}) = {mean[i, j]!r}: negative")
     if range_std_m is not None:
-        if not (np.isfinite(range_std_m) and range_std_m > 0):
-            raise ValueError(f"range_std_m={range_std_m!r}: must be > 0")
-        matrix = RangeMatrix(matrix.mean_m, np.full(mean.shape, float(range_std_m)), matrix.count)
-        min_range_std_m = 0.0
-    pairs, dist, var = matrix.symmetric(min_std_m=min_range_std_m)
+        pairs, dist, var = matrix.symmetric(std_m=float(range_std_m))
+    else:
+        pairs, dist, var = matrix.symmetric(min_std_m=min_range_std_m)
     if not np.all(var > 0):
         raise ValueError("range variances must be > 0: give range_std_m or min_range_std_m > 0")
     return pairs, dist, var, mean.shape[0]
+
+
+def _complete_pair_data(ranges: RangeMatrix, range_std_m, min_range_std_m):
+    """``_pair_data`` for the usual round: every ordered pair measured, finite and >= 0.
+
+    Returns None for anything else (the general path then finds and names the problem).
+    """
+    n = ranges.n_anchors
+    pairs, upper, lower = _pair_index(n)
+    mean_flat, count_flat = ranges.mean_m.ravel(), ranges.count.ravel()
+    ma, mb = mean_flat.take(upper), mean_flat.take(lower)
+    ca, cb = count_flat.take(upper), count_flat.take(lower)
+    # NaN propagates through minimum and fails ">= 0"; inf fails "< inf"
+    if not (np.minimum(ca, cb).min() > 0 and np.minimum(ma, mb).min() >= 0 and np.maximum(ma, mb).max() < np.inf):
+        return None
+    if range_std_m is not None:
+        info_a, info_b = ca / range_std_m**2, cb / range_std_m**2
+    else:
+        if not min_range_std_m > 0:
+            return None  # zero stds need the general path's special case
+        std_flat = ranges.std_m.ravel()
+        info_a = ca / np.maximum(std_flat.take(upper), min_range_std_m) ** 2
+        info_b = cb / np.maximum(std_flat.take(lower), min_range_std_m) ** 2
+    total = info_a + info_b
+    if not total.min() > 0:  # NaN stds
+        return None
+    return pairs, (info_a * ma + info_b * mb) / total, 1.0 / total, n
 
 
 def _check_connected(pairs: np.ndarray, n: int) -> None:
@@ -276,6 +329,17 @@ def _check_connected(pairs: np.ndarray, n: int) -> None:
     if len(set(roots)) > 1:
         groups = [[a for a in range(n) if roots[a] == r] for r in dict.fromkeys(roots)]
         raise DisconnectedGraphError(f"range graph has {len(groups)} disconnected components: {groups}")
+
+
+@lru_cache(maxsize=64)
+def _complete_structure(n: int, dim: int, refs: tuple[int, ...]) -> PairStructure:
+    return pair_structure(_pair_index(n)[0], n, dim, _free_mask(n, dim, refs))
+
+
+def _structure(pairs: np.ndarray, n: int, dim: int, refs: tuple[int, ...]) -> PairStructure:
+    if pairs is _pair_index(n)[0]:  # every pair measured: the usual round, keyed cheaply
+        return _complete_structure(n, dim, refs)
+    return pair_structure(pairs, n, dim, _free_mask(n, dim, refs))
 
 
 def _free_mask(n: int, dim: int, refs: tuple[int, ...]) -> np.ndarray:
@@ -308,10 +372,13 @@ def _covariance(information: np.ndarray, free: np.ndarray, n: int, dim: int) -> 
 
 # -- initializers ------------------------------------------------------------------------------
 def _initial_positions(pairs, dist, n, dim, initializer):
+    all_pairs, upper, lower = _pair_index(n)
+    if pairs is not all_pairs:
+        upper, lower = pairs[:, 0] * n + pairs[:, 1], pairs[:, 1] * n + pairs[:, 0]
     full = np.full((n, n), np.nan)
-    full[pairs[:, 0], pairs[:, 1]] = dist
-    full[pairs[:, 1], pairs[:, 0]] = dist
-    np.fill_diagonal(full, 0.0)
+    full.put(upper, dist)
+    full.put(lower, dist)
+    full.flat[:: n + 1] = 0.0
     if initializer in ("auto", "trilateration"):
         try:
             return trilaterate_initial(full, dim), "trilateration"
@@ -324,29 +391,54 @@ def _initial_positions(pairs, dist, n, dim, initializer):
 def trilaterate_initial(full: np.ndarray, dim: int) -> np.ndarray:
     """The paper's first-calibration start: anchors from their ranges to anchors 0 and 1.
 
-    Anchor 0 at the origin, 1 on +x, y = +sqrt(d0k^2 - x_k^2); further anchors take the y
-    sign (and in 3D the z) that best fits their ranges to the anchors already placed.
+    Anchor 0 at the origin, 1 on +x, y = +sqrt(d0k^2 - x_k^2) for anchor 2. In 2D each further
+    anchor takes the y sign that fits its range to anchor 2, then (with 5+ anchors) the sign
+    that best fits its ranges to all the others as placed by that first pass. In 3D anchors are
+    placed in turn, each with the z sign that fits the anchors already placed.
     """
     n = full.shape[0]
     needed = [0, 1, 2] if dim == 3 else [0, 1]
-    if np.isnan(full[needed]).any():
+    if np.isnan(full[: len(needed)].sum()):
         raise GeometryError(f"trilateration needs every range to anchors {needed}")
     d01 = full[0, 1]
-    scale = np.nanmax(full)
+    scale = float(np.fmax.reduce(full, axis=None))  # max ignoring NaN (nanmax is slower)
     if d01 < 1e-3 * scale:
         raise GeometryError(f"anchors 0 and 1 are {d01:.3g} m apart: cannot define the x axis")
+    if dim == 2:
+        return _trilaterate_2d(full, d01, scale)
     x = np.zeros((n, dim))
     x[1, 0] = d01
     for k in range(2, n):
         xk = (full[0, k] ** 2 - full[1, k] ** 2 + d01**2) / (2 * d01)
         rest2 = max(full[0, k] ** 2 - xk**2, 0.0)
-        if dim == 2:
-            candidates = np.array([[xk, np.sqrt(rest2)], [xk, -np.sqrt(rest2)]])
-        else:
-            candidates = _trilaterate_3d(full, x, k, xk, rest2)
-        x[k] = _best_candidate(candidates, full[k, :k], x[:k], prefer_first=(dim == 2 and k == 2))
-    if dim == 2 and abs(x[2:, 1]).max() < 1e-6 * scale:
+        x[k] = _best_candidate(_trilaterate_3d(full, x, k, xk, rest2), full[k, :k], x[:k])
+    return x
+
+
+def _trilaterate_2d(full: np.ndarray, d01: float, scale: float) -> np.ndarray:
+    d0sq = full[0] * full[0]
+    xs = (d0sq - full[1] * full[1] + d01 * d01) / (2 * d01)
+    ys = np.sqrt(np.maximum(d0sq - xs * xs, 0.0))
+    xs[:2] = 0.0, d01  # exactly, not up to rounding: these are the gauge's fixed coordinates
+    ys[:2] = 0.0
+    if ys[2:].max() < 1e-6 * scale:
         raise GeometryError("anchors are collinear: trilateration cannot place them off the x axis")
+    if len(xs) > 3:
+        # Mirror candidates (x, +y) and (x, -y): keep the one closer to the range to anchor 2.
+        dx = xs - xs[2]
+        flip = np.abs(np.hypot(dx, ys + ys[2]) - full[2]) < np.abs(np.hypot(dx, ys - ys[2]) - full[2])
+        flip[:3] = False
+        ys[flip] *= -1.0
+    if len(xs) > 4:
+        # Second pass: the sign that best fits the ranges to all other anchors.
+        dx = xs[:, None] - xs[None, :]
+        known = np.isfinite(full)
+        known.flat[:: len(xs) + 1] = False
+        up = np.where(known, (np.hypot(dx, np.abs(ys)[:, None] - ys[None, :]) - full) ** 2, 0.0).sum(1)
+        down = np.where(known, (np.hypot(dx, -np.abs(ys)[:, None] - ys[None, :]) - full) ** 2, 0.0).sum(1)
+        ys[3:] = np.where(down[3:] < up[3:], -np.abs(ys[3:]), np.abs(ys[3:]))
+    x = np.empty((len(xs), 2))
+    x[:, 0], x[:, 1] = xs, ys
     return x
 
 
@@ -361,8 +453,8 @@ def _trilaterate_3d(full, x, k, xk, rest2):
     return np.array([[xk, yk, zk], [xk, yk, -zk]])
 
 
-def _best_candidate(candidates, ranges_to_placed, placed, prefer_first):
-    if len(candidates) == 1 or prefer_first:
+def _best_candidate(candidates, ranges_to_placed, placed):
+    if len(candidates) == 1:
         return candidates[0]
     ok = np.isfinite(ranges_to_placed)
     errs = [np.nansum((np.linalg.norm(placed[ok] - c, axis=1) - ranges_to_placed[ok]) ** 2) for c in candidates]

@@ -1,0 +1,90 @@
+"""The compact pair-range solver behind calibrate_anchors."""
+
+import numpy as np
+import pytest
+from scipy.optimize import least_squares
+
+from uwb_env.localization import GeometryError, PairRangeModel
+from uwb_env.localization.calibration import _free_mask
+from uwb_env.localization.pair_solver import pair_residuals, pair_structure, solve_pair_ranges
+
+
+def _problem(rng, n, dim=2, drop=0):
+    x = rng.uniform(0, 10, (n, dim))
+    pairs = np.column_stack(np.triu_indices(n, 1))
+    keep = np.ones(len(pairs), bool)
+    keep[rng.choice(len(pairs), drop, replace=False)] = False
+    pairs = pairs[keep]
+    sigma = rng.uniform(0.02, 0.08, len(pairs))
+    dist = np.linalg.norm(x[pairs[:, 0]] - x[pairs[:, 1]], axis=1) + sigma * rng.standard_normal(len(pairs))
+    refs = (0, 1) if dim == 2 else (0, 1, 2)
+    x = x - x[0]  # gauge: anchor 0 at the origin; fixed coordinates stay at their start values
+    free = _free_mask(n, dim, refs)
+    return x, pairs, dist, 1.0 / sigma**2, free
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_jacobian_matches_finite_differences_on_the_free_columns(dim, rng):
+    x, pairs, dist, inv_var, free = _problem(rng, 6, dim, drop=3)
+    s = pair_structure(pairs, 6, dim, free)
+    scale = np.sqrt(inv_var)
+    _, jac = pair_residuals(s, x, dist, scale)
+    assert np.all(jac[:, -1] == 0.0)  # the gauge column
+    full_fd = PairRangeModel(pairs, 6).jacobian_fd(x) * scale[:, None]
+    np.testing.assert_allclose(jac[:, :-1], full_fd[:, free], atol=1e-6)
+
+
+@pytest.mark.parametrize("n, drop, loss", [(5, 0, "linear"), (9, 6, "linear"), (8, 0, "cauchy"), (7, 2, "huber")])
+def test_solution_matches_scipy_least_squares(n, drop, loss, rng):
+    x, pairs, dist, inv_var, free = _problem(rng, n, drop=drop)
+    start = x + np.where(free.reshape(n, 2), rng.normal(0, 0.3, x.shape), 0.0)
+    s = pair_structure(pairs, n, 2, free)
+    out = solve_pair_ranges(s, start, dist, inv_var, loss, 2.0)
+    model, sw = PairRangeModel(pairs, n), np.sqrt(inv_var)
+
+    def unpack(theta):
+        full = start.ravel().copy()
+        full[free] = theta
+        return full.reshape(n, 2)
+
+    ref = least_squares(lambda t: (model.evaluate(unpack(t)) - dist) * sw, start.ravel()[free],
+                        loss=loss, f_scale=2.0, xtol=1e-12, ftol=1e-12, gtol=1e-12)
+    assert out.converged
+    np.testing.assert_allclose(out.positions, unpack(ref.x), atol=1e-6)
+    assert out.cost == pytest.approx(ref.cost, rel=1e-8)
+    np.testing.assert_array_equal(out.positions.ravel()[~free], start.ravel()[~free])
+
+
+def test_damps_and_recovers_from_a_start_where_gauss_newton_overshoots(rng):
+    x, pairs, dist, inv_var, free = _problem(rng, 6)
+    start = x.copy()
+    start[2:] = x[2:][::-1] + 3.0  # far away and permuted: undamped steps raise the cost
+    s = pair_structure(pairs, 6, 2, free)
+    out = solve_pair_ranges(s, start, dist, inv_var)
+    assert out.converged and out.message == "converged"
+    # a local minimum is allowed, but the cost must not exceed the start's
+    r0, _ = pair_residuals(s, start, dist)
+    assert out.cost <= 0.5 * float((r0**2 * inv_var).sum())
+
+
+def test_covariance_is_inverse_information_and_rejects_degenerate_shapes(rng):
+    x, pairs, dist, inv_var, free = _problem(rng, 5)
+    s = pair_structure(pairs, 5, 2, free)
+    out = solve_pair_ranges(s, x, dist, inv_var)
+    cov = out.covariance()
+    assert np.all(cov[~free] == 0) and np.all(cov[:, ~free] == 0)
+    np.testing.assert_allclose(cov[np.ix_(free, free)] @ out.information[:-1, :-1], np.eye(free.sum()), atol=1e-8)
+
+    line = np.column_stack([np.arange(5.0), np.zeros(5)])  # collinear: y is not fixed
+    d = np.linalg.norm(line[pairs[:, 0]] - line[pairs[:, 1]], axis=1)
+    flat = solve_pair_ranges(s, line, d, inv_var)
+    with pytest.raises(GeometryError, match="degenerate"):
+        flat.covariance()
+
+
+def test_structure_is_cached_and_read_only(rng):
+    _, pairs, _, _, free = _problem(rng, 5)
+    a, b = pair_structure(pairs, 5, 2, free), pair_structure(pairs.copy(), 5, 2, free.copy())
+    assert a is b
+    with pytest.raises(ValueError):
+        a.column[0] = 3

@@ -1,0 +1,247 @@
+"""Levenberg-Marquardt for inter-anchor range problems, built for a few dozen anchors.
+
+A calibration has a handful to a few hundred residuals, so a general solver (scipy's
+``least_squares``) spends its time in Python bookkeeping, not arithmetic. This one keeps the
+number of numpy calls per iteration small and fixed:
+
+- The problem's *structure* (pairs, which coordinates the gauge fixes) is compiled once into
+  index arrays and cached: the env calibrates the same anchors over and over.
+- Pair differences are one matmul with a +1/-1 incidence matrix; the Jacobian is written with
+  two ``put`` calls into a buffer whose extra last column absorbs the gauge-fixed coordinates
+  (so no column selection is needed, and that column's step is zero by construction).
+- The normal equations are solved by LAPACK's Cholesky (``dposv``), whose call overhead is a
+  fraction of ``numpy.linalg.solve``'s.
+- It starts as Gauss-Newton (no damping) and only damps after a step that raised the cost.
+- It stops when the step is below ``xtol_sigma`` of the smallest range std: what is left is
+  orders of magnitude under the noise. That last step is taken without a new evaluation; the
+  residuals are updated to first order (their error is the step squared over a range, far
+  below floating-point noise at these scales).
+
+Robust losses run as iteratively reweighted least squares with the weights from ``robust``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+from scipy.linalg.lapack import dpocon, dposv
+
+from uwb_env.localization.errors import GeometryError
+from uwb_env.localization.robust import irls_weights, robust_cost
+
+# Below this reciprocal condition number of J^T W J the free coordinates are not fixed by
+# the ranges (collinear / coplanar anchors, too few pairs for a rigid shape).
+RCOND_MIN = 1e-10
+
+
+@dataclass(frozen=True, eq=False)
+class PairStructure:
+    """Index arrays of one problem layout (pairs over n anchors, with some coordinates fixed).
+
+    Attributes:
+        n, dim: anchors and dimension.
+        n_free: number of estimated coordinates F.
+        incidence: (P, n) +1 at pair i, -1 at pair j: ``incidence @ x`` are the differences.
+        put_i, put_j: (P, dim) flat indices of d r_p / d x_i (and x_j) in a (P, F+1) buffer.
+        column: (n*dim,) column of each coordinate; fixed coordinates map to the extra one, F.
+        covariance_take: (n*dim, n*dim) flat indices into an (F+1, F+1) matrix that expand it
+            to all coordinates (fixed ones read the extra row and column).
+        identity: (F+1, F+1) identity (read-only), the right-hand side that inverts.
+    """
+
+    n: int
+    dim: int
+    n_free: int
+    incidence: np.ndarray
+    put_i: np.ndarray
+    put_j: np.ndarray
+    column: np.ndarray
+    covariance_take: np.ndarray
+    identity: np.ndarray
+
+
+def pair_structure(pairs: np.ndarray, n: int, dim: int, free: np.ndarray) -> PairStructure:
+    """The (cached) structure for ``pairs`` (P, 2) and a ``free`` (n*dim,) coordinate mask."""
+    pairs = np.ascontiguousarray(pairs, dtype=np.int64)
+    free = np.ascontiguousarray(free, dtype=bool)
+    return _structure(n, dim, pairs.tobytes(), free.tobytes())
+
+
+@lru_cache(maxsize=128)
+def _structure(n: int, dim: int, pair_bytes: bytes, free_bytes: bytes) -> PairStructure:
+    pairs = np.frombuffer(pair_bytes, dtype=np.int64).reshape(-1, 2)
+    free = np.frombuffer(free_bytes, dtype=bool)
+    n_free = int(free.sum())
+    column = np.full(n * dim, n_free, dtype=np.int64)
+    column[free] = np.arange(n_free)
+    p = len(pairs)
+    incidence = np.zeros((p, n))
+    incidence[np.arange(p), pairs[:, 0]] = 1.0
+    incidence[np.arange(p), pairs[:, 1]] = -1.0
+    cols = column.reshape(n, dim)
+    row0 = (np.arange(p) * (n_free + 1))[:, None]
+    take = column[:, None] * (n_free + 1) + column[None, :]
+    identity = np.eye(n_free + 1)
+    for array in (incidence, column, take, identity):
+        array.flags.writeable = False  # shared by every solve with this layout
+    return PairStructure(n, dim, n_free, incidence, row0 + cols[pairs[:, 0]], row0 + cols[pairs[:, 1]], column,
+                         take, identity)
+
+
+@dataclass
+class PairSolution:
+    """Outcome of :func:`solve_pair_ranges`.
+
+    ``information`` is J^T W J over the free coordinates at the solution (plus a 1 on the
+    extra diagonal entry of the gauge column, which keeps it positive definite and is dropped
+    by :meth:`covariance`).
+    """
+
+    positions: np.ndarray
+    information: np.ndarray
+    residuals: np.ndarray
+    weights: np.ndarray
+    cost: float
+    iterations: int
+    converged: bool
+    message: str
+    structure: PairStructure
+
+    def covariance(self) -> np.ndarray:
+        """(n*dim, n*dim) inverse information, zeros on the fixed coordinates.
+
+        Raises GeometryError when the ranges do not fix every free coordinate.
+        """
+        s = self.structure
+        info = self.information
+        chol, inv, status = dposv(info, s.identity)
+        if status == 0:
+            # trace(info) >= its largest eigenvalue: a cheap stand-in for the 1-norm that errs
+            # towards calling a shape degenerate, never towards trusting a singular one
+            rcond, _ = dpocon(chol, float(info.trace()))
+        if status != 0 or not rcond > RCOND_MIN:
+            raise GeometryError(
+                "degenerate anchor geometry: the ranges do not fix every free coordinate "
+                "(collinear / coplanar anchors, or too few pairs for a rigid shape)"
+            )
+        inv[s.n_free] = 0.0
+        inv[:, s.n_free] = 0.0
+        return inv.take(s.covariance_take)
+
+
+def pair_residuals(
+    structure: PairStructure, x: np.ndarray, dist: np.ndarray, row_scale: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals ||x_i - x_j|| - dist (P,) and the Jacobian buffer (P, F+1), gauge column zero.
+
+    ``row_scale`` (P,) multiplies the Jacobian's rows (the solver passes 1/sigma_p: whitening
+    costs nothing extra here).
+    """
+    diff = structure.incidence @ x
+    if structure.dim == 2:
+        d = np.hypot(diff[:, 0], diff[:, 1])
+    else:
+        d = np.sqrt((diff * diff).sum(1))
+    scale = 1.0 / np.maximum(d, 1e-12) if row_scale is None else row_scale / np.maximum(d, 1e-12)
+    u = diff * scale[:, None]
+    jac = np.zeros((len(d), structure.n_free + 1))
+    jac.put(structure.put_i, u)
+    jac.put(structure.put_j, -u)
+    jac[:, -1] = 0.0
+    return d - dist, jac
+
+
+def solve_pair_ranges(
+    structure: PairStructure,
+    x0: np.ndarray,
+    dist: np.ndarray,
+    inv_var: np.ndarray,
+    loss: str = "linear",
+    f_scale: float = 1.0,
+    max_iterations: int = 50,
+    xtol_sigma: float | None = None,
+    ftol: float = 1e-12,
+) -> PairSolution:
+    """Minimize 0.5 * sum rho(((||x_i - x_j|| - dist_p) / sigma_p)^2) over the free coordinates.
+
+    Args:
+        structure: from :func:`pair_structure`; the fixed coordinates keep their ``x0`` values.
+        x0: (n, dim) start.
+        dist, inv_var: (P,) measured ranges and 1 / sigma_p^2.
+        loss, f_scale: robust loss and its scale in whitened units (see ``robust``).
+        xtol_sigma: stop when the step's norm is below this fraction of the smallest sigma_p.
+            The step is still taken, so what is left is about the next step. Default 1e-3 for
+            the linear loss, where Gauss-Newton shrinks steps by about the residual-to-range
+            ratio each iteration (quadratically when the ranges are consistent); 1e-6 for
+            robust losses, whose reweighting converges only linearly.
+        ftol: or when the relative cost decrease falls below this.
+    """
+    n, dim, nf = structure.n, structure.dim, structure.n_free
+    column = structure.column
+    x = np.array(x0, dtype=float).reshape(n, dim)
+    sqrt_iv = np.sqrt(inv_var)
+    linear = loss == "linear"
+    if xtol_sigma is None:
+        xtol_sigma = 1e-3 if linear else 1e-6
+    # floor: steps below ~1e-12 of the scene's size are lost to rounding
+    xtol = max(xtol_sigma / float(sqrt_iv.max()), 1e-12 * float(dist.max()))
+    xtol2 = xtol * xtol
+    # z and jac are whitened (divided by sigma_p); robust weights scale them further per step
+    r, jac = pair_residuals(structure, x, dist, sqrt_iv)
+    z = r * sqrt_iv
+    cost = 0.5 * float(z @ z) if linear else robust_cost(z, loss, f_scale)
+    info = None
+    lam, message, converged, it = 0.0, "max_iterations reached", False, 0
+    for it in range(1, max_iterations + 1):
+        if linear:
+            wjac, wz = jac, z
+        else:
+            root_w = np.sqrt(irls_weights(z, loss, f_scale))
+            wjac, wz = jac * root_w[:, None], z * root_w
+        a = wjac.T @ wjac
+        a[nf, nf] = 1.0
+        g = wjac.T @ wz
+        while True:
+            if lam:
+                diag = np.diag(a).copy()
+                diag[diag <= 0] = 1.0
+                _, step, status = dposv(a + np.diag(lam * diag), g)
+            else:
+                _, step, status = dposv(a, g)
+            if status == 0:
+                delta = step.take(column).reshape(n, dim)
+                if float(step @ step) <= xtol2:
+                    x -= delta
+                    z = z - jac @ step  # first order; the gauge column of jac is zero
+                    r = z / sqrt_iv
+                    cost = 0.5 * float(z @ z) if linear else robust_cost(z, loss, f_scale)
+                    message, converged = "converged", True
+                    if linear:
+                        info = a  # J^T W J barely moves over a sub-xtol step
+                    break
+                trial = x - delta
+                r_new, jac_new = pair_residuals(structure, trial, dist, sqrt_iv)
+                z_new = r_new * sqrt_iv
+                cost_new = 0.5 * float(z_new @ z_new) if linear else robust_cost(z_new, loss, f_scale)
+                if cost_new <= cost:  # False for NaN
+                    break
+            lam = max(lam * 10.0, 1e-6)
+            if lam > 1e12:
+                message = "no decrease possible" if status == 0 else "singular normal equations"
+                break
+        if message != "max_iterations reached":
+            break
+        small_gain = cost - cost_new <= ftol * max(cost, 1e-300)
+        x, r, z, jac, cost = trial, r_new, z_new, jac_new, cost_new
+        lam = lam / 10.0 if lam > 1e-6 else 0.0
+        if small_gain:
+            message, converged = "converged", True
+            break
+    robust_w = np.ones_like(z) if linear else irls_weights(z, loss, f_scale)
+    if info is None:
+        wjac = jac if linear else jac * np.sqrt(robust_w)[:, None]
+        info = wjac.T @ wjac
+        info[nf, nf] = 1.0
+    return PairSolution(x, info, r, inv_var * robust_w, cost, it, converged, message, structure)
