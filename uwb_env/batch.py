@@ -213,7 +213,7 @@ class BatchedSystem:
             pos = np.stack([f.positions for f in fixes])
             rms = np.stack([f.residual_rms_m for f in fixes])
         else:
-            pos, rms = self._gauss_newton(sel, ranges[sel], None if cov is None else cov[sel])
+            pos, rms, _ = self._gauss_newton(sel, ranges[sel], None if cov is None else cov[sel])
             restart = solver.tag_restart_residual_m + 2.0 * np.sqrt(pred_var[sel].max(axis=1))
             for row, k in enumerate(sel):  # rare: re-solve a copy's stuck tags from the closed form
                 refit_stuck_tags(self.anchors_est[k], ranges[k], pos[row], rms[row], restart[row], self.range_std_m,

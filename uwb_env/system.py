@@ -13,6 +13,7 @@ anchor positions onto that solution, so errors are measured where users see posi
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -63,6 +64,7 @@ class LocalizationSystem:
         self.dim = self.config.sim.dim
         self.range_std_m = self.range_model.corrected_noise_std_m
         self.obs_size = self.dim + len(OBS_FIELDS)
+        self._eye = np.eye(self.dim)
 
     # -- lifecycle -----------------------------------------------------------------------------
     def reset(self, rng: np.random.Generator) -> None:
@@ -81,6 +83,7 @@ class LocalizationSystem:
         self.anchor_cov = np.zeros((n, dim, dim))
         self.last_calibration_rms_m = 0.0
         self.tag_fix = np.full((m, dim), np.nan)
+        self._all_tags_fixed = False
         self.tag_velocity = np.zeros((m, dim))
         self.tag_fix_age_s = np.zeros(m)
         w = cfg.residual_window_steps
@@ -195,50 +198,64 @@ class LocalizationSystem:
     def _fix_tags(self) -> None:
         if self.n_tags == 0:
             return
-        raw = self.world.measure_tag_ranges().T  # (tags, anchors)
+        world = self.world
+        raw = world.measure_tag_ranges().T  # (tags, anchors)
         # Noise can push a corrected range below zero next to an anchor: a valid reading of ~0.
-        ranges = np.maximum(self.world.tag_correction.correct(raw), 0.0)
+        ranges = np.maximum(world.tag_correction.correct(raw), 0.0)
         solver = self.config.solver
+        pred_var = self.predicted_anchor_var_m2()
         cov = None
-        if solver.use_anchor_covariance:
-            drift_var = self.predicted_anchor_var_m2() - self.calibration_var_m2  # isotropic drift part
-            cov = self.anchor_cov + (drift_var / self.dim)[:, None, None] * np.eye(self.dim)
+        if solver.use_anchor_covariance:  # calibration covariance + the isotropic drift part
+            cov = self.anchor_cov + ((pred_var - self.calibration_var_m2) / self.dim)[:, None, None] * self._eye
         # Stale anchors raise every residual; only a residual well beyond what their predicted
         # error explains suggests a fix stuck in a wrong minimum (worth a cold restart).
-        restart_m = solver.tag_restart_residual_m + 2.0 * float(np.sqrt(self.predicted_anchor_var_m2().max()))
-        if self.dim == 2 and np.isfinite(self.tag_fix).all():
+        restart_m = solver.tag_restart_residual_m + 2.0 * math.sqrt(float(pred_var.max()))
+        anchors = world.anchors_est
+        if self.dim == 2 and self._all_tags_fixed:
             # tracking (the hot path): the lean batched Gauss-Newton, cold restarts only if stuck
-            positions, rms = track_tags_2d(self.world.anchors_est[None], self.tag_fix[None], ranges[None],
-                                           self.range_std_m ** 2, None if cov is None else cov[None], solver.loss,
-                                           solver.f_scale_sigmas, solver.tag_iterations)
-            positions, rms = positions[0], rms[0]
-            refit_stuck_tags(self.world.anchors_est, ranges, positions, rms, restart_m, self.range_std_m, cov,
-                             solver.loss, solver.f_scale_sigmas)
-            ok = np.isfinite(positions).all(1)
+            positions, rms, res = track_tags_2d(anchors[None], self.tag_fix[None], ranges[None], self.range_std_m**2,
+                                                None if cov is None else cov[None], solver.loss,
+                                                solver.f_scale_sigmas, solver.tag_iterations)
+            positions, rms, per_anchor = positions[0], rms[0], np.abs(res[0])
+            refit = refit_stuck_tags(anchors, ranges, positions, rms, restart_m, self.range_std_m, cov,
+                                     solver.loss, solver.f_scale_sigmas)
+            if len(refit):
+                per_anchor[refit] = np.abs(np.linalg.norm(positions[refit, None] - anchors, axis=-1) - ranges[refit])
         else:
             fix = locate_tags(
-                self.world.anchors_est, ranges, self.range_std_m, anchor_covariance=cov, loss=solver.loss,
+                anchors, ranges, self.range_std_m, anchor_covariance=cov, loss=solver.loss,
                 f_scale=solver.f_scale_sigmas, initial=self.tag_fix, max_iterations=solver.tag_iterations,
                 with_covariance=False, restart_residual_m=restart_m,
             )
-            positions, rms, ok = fix.positions, fix.residual_rms_m, fix.ok
-        dt = self.world.dt_s
-        new = np.where(ok[:, None], positions, self.tag_fix)
-        had = np.isfinite(self.tag_fix).all(1) & ok
-        elapsed = np.maximum(self.tag_fix_age_s + dt, dt)[:, None]
-        self.tag_velocity = np.where(had[:, None], (new - np.nan_to_num(self.tag_fix)) / elapsed, self.tag_velocity)
-        self.tag_fix = new
-        self.tag_fix_age_s = np.where(ok, 0.0, self.tag_fix_age_s + dt)
+            positions, rms = fix.positions, np.where(fix.ok, fix.residual_rms_m, np.nan)
+            per_anchor = np.abs(np.linalg.norm(positions[:, None, :] - anchors[None], axis=-1) - ranges)
+        dt = world.dt_s
+        all_ok = math.isfinite(rms.sum())  # a tag without a fix has a NaN rms
+        ok = None if all_ok else np.isfinite(rms)
+        if all_ok and self._all_tags_fixed:  # the usual step: every tag fixed now and before
+            self.tag_velocity = (positions - self.tag_fix) / (self.tag_fix_age_s + dt)[:, None]
+            self.tag_fix = positions
+            self.tag_fix_age_s = np.zeros(self.n_tags)
+        else:
+            ok = np.ones(self.n_tags, bool) if ok is None else ok
+            new = np.where(ok[:, None], positions, self.tag_fix)
+            had = np.isfinite(self.tag_fix).all(1) & ok
+            elapsed = np.maximum(self.tag_fix_age_s + dt, dt)[:, None]
+            self.tag_velocity = np.where(had[:, None], (new - np.nan_to_num(self.tag_fix)) / elapsed,
+                                         self.tag_velocity)
+            self.tag_fix = new
+            self.tag_fix_age_s = np.where(ok, 0.0, self.tag_fix_age_s + dt)
+            self._all_tags_fixed = bool(np.isfinite(new).all())
         # Residual statistics: what a deployed system can see that its anchors went stale.
-        predicted = np.linalg.norm(positions[:, None, :] - self.world.anchors_est[None], axis=-1)
-        per_anchor = np.abs(predicted - ranges)
-        per_anchor = np.where(np.isfinite(per_anchor) & ok[:, None], per_anchor, np.nan)
         i = self._hist_index % self.config.residual_window_steps
-        if ok.any():
+        if all_ok and math.isfinite(per_anchor.sum()):
+            self._tag_residual_hist[i] = float(rms.sum()) / self.n_tags
+            self._anchor_residual_hist[i] = per_anchor.sum(0) * (1.0 / self.n_tags)
+        elif ok is None or ok.any():
+            ok = np.ones(self.n_tags, bool) if ok is None else ok
             self._tag_residual_hist[i] = rms[ok].mean()
-            seen = np.isfinite(per_anchor)
-            counts = seen.sum(0)
-            self._anchor_residual_hist[i] = np.where(seen, per_anchor, 0.0).sum(0) / np.maximum(counts, 1)
+            seen = np.isfinite(per_anchor) & ok[:, None]
+            self._anchor_residual_hist[i] = np.where(seen, per_anchor, 0.0).sum(0) / np.maximum(seen.sum(0), 1)
         else:  # no usable fix this step: carry the previous statistics
             self._tag_residual_hist[i] = self._tag_residual_hist[i - 1]
             self._anchor_residual_hist[i] = self._anchor_residual_hist[i - 1]

@@ -10,6 +10,7 @@ batched: (T, dim, dim) systems solved at once.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -261,24 +262,32 @@ def _inverse_variance(base_var, base_iv, u, anchor_covariance, valid):
 
 
 def refit_stuck_tags(anchors, ranges_m, positions, rms, threshold_m, range_std_m, anchor_covariance=None,
-                     loss="linear", f_scale=2.0) -> None:
+                     loss="linear", f_scale=2.0) -> np.ndarray:
     """In place: tags whose tracked fix has an RMS residual above ``threshold_m`` (or none) are
     solved again from the closed form; the lower residual wins. For one set of anchors (N, dim),
-    ``ranges_m`` (M, N), ``positions`` (M, dim), ``rms`` (M,)."""
+    ``ranges_m`` (M, N), ``positions`` (M, dim), ``rms`` (M,). Returns the refit tags' indices."""
     stuck = ~(rms <= threshold_m)
     if not stuck.any():
-        return
+        return np.empty(0, dtype=int)
     again = locate_tags(anchors, ranges_m[stuck], range_std_m, anchor_covariance=anchor_covariance, loss=loss,
                         f_scale=f_scale, with_covariance=False)
     better = again.ok & ~(again.residual_rms_m >= rms[stuck])
     idx = np.flatnonzero(stuck)[better]
     positions[idx], rms[idx] = again.positions[better], again.residual_rms_m[better]
+    return idx
 
 
 def track_tags_2d(anchors, previous, ranges_m, range_var_m2, anchor_covariance=None, loss="linear", f_scale=2.0,
                   iterations=2):
     """Warm-started planar Gauss-Newton for tracking: many groups of tags, each group against
     its own anchors, in a few numpy calls per iteration (the environments' hot path).
+
+    Points are complex numbers x + iy, which turns the 2x2 algebra into a handful of array
+    calls: with unit vectors u (|u| = 1) and weights w, the normal matrix A = sum w u u^T acts
+    as A z = (W z + S conj(z)) / 2 with W = sum w and S = sum w u^2, so its inverse is
+    A^-1 g = 2 (W g - S conj(g)) / (W^2 - |S|^2) (the denominator is 4 det A). Likewise an
+    anchor covariance C adds u^T C u = tr(C)/2 + Re(u^2 conj(k)), k = (c00 - c11)/2 + i c01,
+    to a range's variance.
 
     Args:
         anchors: (S, N, 2) anchor positions per group.
@@ -289,21 +298,52 @@ def track_tags_2d(anchors, previous, ranges_m, range_var_m2, anchor_covariance=N
         loss, f_scale, iterations: robust loss (see ``robust``), its scale in sigmas, GN steps.
 
     Returns:
-        (positions (S, M, 2), rms residual (S, M)); NaN where fewer than 3 ranges or not finite.
+        (positions (S, M, 2), rms residual (S, M), residuals (S, M, N) fitted minus measured);
+        NaN where fewer than 3 ranges, not finite, or (residuals) the range is missing.
     """
-    ax, ay = anchors[:, None, :, 0], anchors[:, None, :, 1]
+    # (..., 2) float -> (...) complex: a view when contiguous, no copy
+    a = np.ascontiguousarray(anchors, dtype=float).view(np.complex128)[..., 0][:, None, :]
+    p = np.ascontiguousarray(previous, dtype=float).view(np.complex128)[..., 0]
     valid = np.isfinite(ranges_m)
-    r = np.where(valid, ranges_m, 0.0)
-    enough = valid.sum(-1) >= 3
-    base_iv = np.where(valid, 1.0 / range_var_m2, 0.0)
-    cov = None if anchor_covariance is None else tuple(anchor_covariance[:, None, :, i, j]
-                                                       for i, j in ((0, 0), (0, 1), (1, 1)))
-    px, py, _ = _gn_steps_2d(ax, ay, previous[..., 0].copy(), previous[..., 1].copy(), r, range_var_m2, base_iv,
-                             valid, enough, cov, loss, f_scale, iterations, None)
-    res = np.where(valid, np.hypot(px[..., None] - ax, py[..., None] - ay) - r, 0.0)
-    rms = np.sqrt((res * res).sum(-1) / np.maximum(valid.sum(-1), 1))
-    pos = np.stack([px, py], axis=-1)
-    bad = ~enough | ~np.isfinite(pos).all(-1)
-    pos[bad] = np.nan
-    rms[bad] = np.nan
-    return pos, rms
+    complete = bool(valid.all())
+    r = ranges_m if complete else np.where(valid, ranges_m, 0.0)
+    if anchor_covariance is None:
+        iv = np.full(ranges_m.shape, 1.0 / range_var_m2) if complete else valid / range_var_m2
+    else:
+        c00, c01, c11 = anchor_covariance[..., 0, 0], anchor_covariance[..., 0, 1], anchor_covariance[..., 1, 1]
+        var0 = (range_var_m2 + 0.5 * (c00 + c11))[:, None, :]
+        k_conj = (0.5 * (c00 - c11) - 1j * c01)[:, None, :]
+    linear = loss == "linear"
+    for _ in range(iterations):
+        d = p[..., None] - a
+        dist = np.maximum(np.abs(d), 1e-12)
+        u = d / dist
+        res = dist - r
+        u2 = u * u
+        if anchor_covariance is not None:  # 1 / (sigma^2 + u^T C u)
+            iv = 1.0 / (var0 + (u2 * k_conj).real)
+            if not complete:
+                iv = iv * valid
+        w = iv if linear else iv * irls_weights(res * np.sqrt(iv), loss, f_scale)
+        total_w, s2, g = w.sum(-1), (w * u2).sum(-1), ((w * res) * u).sum(-1)
+        det = total_w * total_w - (s2 * s2.conj()).real
+        # tags without 3 ranges (or on a line of anchors) keep their position: det -> inf
+        p = p - (total_w * g - s2 * g.conj()) * (2.0 / np.where(det > 1e-300, det, np.inf))
+    res = np.abs(p[..., None] - a) - r
+    n_anchors = ranges_m.shape[-1]
+    if complete:
+        rms = np.sqrt((res * res).sum(-1) * (1.0 / n_anchors))
+        enough = None if n_anchors >= 3 else np.zeros(p.shape, bool)
+    else:
+        res = np.where(valid, res, np.nan)
+        count = valid.sum(-1)
+        rms = np.sqrt(np.where(valid, res * res, 0.0).sum(-1) / np.maximum(count, 1))
+        enough = count >= 3
+    pos = p.view(np.float64).reshape(p.shape + (2,))  # p is a fresh array: the view is ours
+    # a non-finite fix has a non-finite rms
+    if enough is not None or not math.isfinite(rms.sum()):
+        bad = ~np.isfinite(rms) if enough is None else ~enough | ~np.isfinite(rms)
+        pos[bad] = np.nan
+        rms[bad] = np.nan
+        res[bad] = np.nan
+    return pos, rms, res

@@ -24,9 +24,9 @@ def check_loss(loss: str) -> None:
 def irls_weights(z: np.ndarray, loss: str, f_scale: float) -> np.ndarray:
     if loss == "linear":
         return np.ones_like(z)
+    if loss == "huber":  # 1 / sqrt(s) = c / |z| beyond the scale
+        return np.minimum(1.0, f_scale / np.maximum(np.abs(z), 1e-300))
     s = (z / f_scale) ** 2
-    if loss == "huber":
-        return np.where(s <= 1.0, 1.0, 1.0 / np.sqrt(np.maximum(s, 1e-300)))
     if loss == "soft_l1":
         return 1.0 / np.sqrt(1.0 + s)
     if loss == "cauchy":
