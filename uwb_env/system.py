@@ -13,6 +13,7 @@ anchor positions onto that solution, so errors are measured where users see posi
 
 from __future__ import annotations
 
+import cmath
 import math
 from dataclasses import dataclass
 
@@ -46,6 +47,11 @@ class StepReport:
     calibration_failed: str | None = None
 
 
+def _as_complex(points: np.ndarray) -> np.ndarray:
+    """(k, 2) float -> (k,) complex x + iy (a view unless a copy is needed for contiguity)."""
+    return np.ascontiguousarray(points, dtype=float).view(np.complex128)[:, 0]
+
+
 class LocalizationSystem:
     """Anchors, tags, calibration rounds and the embedded solver, stepped together.
 
@@ -65,6 +71,7 @@ class LocalizationSystem:
         self.range_std_m = self.range_model.corrected_noise_std_m
         self.obs_size = self.dim + len(OBS_FIELDS)
         self._eye = np.eye(self.dim)
+        self._bounds = self.feature_bounds()
 
     # -- lifecycle -----------------------------------------------------------------------------
     def reset(self, rng: np.random.Generator) -> None:
@@ -128,8 +135,8 @@ class LocalizationSystem:
         t0 = world.time_s
         before = world.anchors_est.copy()
         world.step()
-        moved = np.linalg.norm(world.anchors_est - before, axis=1)
-        self.distance_since_calibration_m += moved
+        delta = world.anchors_est - before
+        self.distance_since_calibration_m += np.sqrt((delta * delta).sum(1))
         self.steps_since_calibration += 1
         self.time_since_calibration_s += dt
         report = StepReport(started, False, ignored, 0.0)
@@ -270,23 +277,25 @@ class LocalizationSystem:
     def anchor_features(self) -> np.ndarray:
         """(n_anchors, dim + len(OBS_FIELDS)) float32 features, clipped to the declared bounds."""
         world = self.world
-        n = self.n_anchors
+        dim = self.dim
         filled = min(self._hist_index, self.config.residual_window_steps)
-        tag_res = self._tag_residual_hist[:filled].mean() if filled else 0.0
-        own_res = self._anchor_residual_hist[:filled].mean(0) if filled else np.zeros(n)
         rnd = world.round
-        feats = np.empty((n, self.obs_size), dtype=np.float32)
-        feats[:, : self.dim] = world.anchors_est
-        feats[:, self.dim] = self.time_since_calibration_s
-        feats[:, self.dim + 1] = np.sqrt(self.predicted_anchor_var_m2())
-        feats[:, self.dim + 2] = np.sqrt(self.calibration_var_m2)
-        feats[:, self.dim + 3] = self.last_calibration_rms_m
-        feats[:, self.dim + 4] = tag_res
-        feats[:, self.dim + 5] = own_res
-        feats[:, self.dim + 6] = float(rnd is not None)
-        feats[:, self.dim + 7] = rnd.progress if rnd is not None else 0.0
-        low, high = self.feature_bounds()
-        return np.clip(feats, low, high)
+        feats = np.empty((self.n_anchors, self.obs_size), dtype=np.float32)
+        feats[:, :dim] = world.anchors_est
+        feats[:, dim] = self.time_since_calibration_s
+        feats[:, dim + 1] = np.sqrt(self.predicted_anchor_var_m2())
+        feats[:, dim + 2] = np.sqrt(self.calibration_var_m2)
+        feats[:, dim + 3] = self.last_calibration_rms_m
+        if filled:
+            feats[:, dim + 4] = float(self._tag_residual_hist[:filled].sum()) / filled
+            feats[:, dim + 5] = self._anchor_residual_hist[:filled].sum(0) * (1.0 / filled)
+        else:
+            feats[:, dim + 4 : dim + 6] = 0.0
+        feats[:, dim + 6] = float(rnd is not None)
+        feats[:, dim + 7] = rnd.progress if rnd is not None else 0.0
+        low, high = self._bounds
+        np.minimum(feats, high, out=feats)
+        return np.maximum(feats, low, out=feats)
 
     def feature_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         size, cap = self.config.sim.area_size_m, self.config.error_cap_m
@@ -327,11 +336,39 @@ class LocalizationSystem:
             raise ValueError(f"frame={frame!r}: must be 'constellation' or 'fixed'")
         return truth
 
+    def _planar_errors(self) -> dict:
+        """Every truth metric of this step at once, for 2D (the envs' hot path).
+
+        Points are complex numbers: the constellation transform is the rotation e^{i theta}
+        with theta the angle of sum conj(a_k) b_k over the centred true (a) and estimated (b)
+        anchors (the closed-form 2D Procrustes solution), so both frames' errors for anchors
+        and tags come out of a dozen array calls.
+        """
+        n, world = self.n_anchors, self.world
+        truth = _as_complex(world.to_estimate_frame(world.motion.positions))
+        est_a = _as_complex(world.anchors_est)
+        mu_s, mu_t = complex(truth[:n].sum()) / n, complex(est_a.sum()) / n
+        align = complex(((truth[:n] - mu_s).conj() * (est_a - mu_t)).sum())
+        turn = align / abs(align) if align != 0 else 1.0
+        errors = {}
+        for frame, ref in (("constellation", (truth - mu_s) * turn + mu_t), ("fixed", truth)):
+            errors["anchor", frame] = np.abs(est_a - ref[:n])
+            if self.n_tags:
+                err = np.abs(_as_complex(self.tag_fix) - ref[n:])
+                errors["tag", frame] = np.fmin(err, self.config.error_cap_m)  # fmin: NaN -> the cap
+            else:
+                errors["tag", frame] = np.zeros(0)
+        heading_est, heading_true = complex(est_a[1] - est_a[0]), complex(truth[1] - truth[0])
+        errors["rotation"] = abs(cmath.phase(heading_true * heading_est.conjugate()))
+        return errors
+
     def anchor_errors_m(self, frame: str = "constellation") -> np.ndarray:
         """Per-anchor error; ``constellation`` (after rigid alignment) or ``fixed`` (first-calibration frame).
         NaN without ground truth (hardware)."""
         if not self.ground_truth:
             return np.full(self.n_anchors, np.nan)
+        if self.dim == 2 and frame in ("constellation", "fixed"):
+            return self._cached("planar", self._planar_errors)["anchor", frame]
         return self._cached(("anchor", frame), lambda: np.linalg.norm(
             self.world.anchors_est - self._truth(self.world.anchors_true, frame), axis=1))
 
@@ -339,6 +376,8 @@ class LocalizationSystem:
         """Per-tag error of the current fix (held fixes keep aging); capped at ``error_cap_m``."""
         if not self.ground_truth:
             return np.full(self.n_tags, np.nan)
+        if self.dim == 2 and frame in ("constellation", "fixed"):
+            return self._cached("planar", self._planar_errors)["tag", frame]
 
         def compute():
             err = np.linalg.norm(self.tag_fix - self._truth(self.world.tags_true, frame), axis=1)
@@ -360,6 +399,8 @@ class LocalizationSystem:
         (in the fixed frame of the first calibration)."""
         if not self.ground_truth:
             return float("nan")
+        if self.dim == 2:
+            return self._cached("planar", self._planar_errors)["rotation"]
         truth = self.world.to_estimate_frame(self.world.anchors_true[:2])
         est = self.world.anchors_est[:2]
         a, b = est[1] - est[0], truth[1] - truth[0]
@@ -368,8 +409,8 @@ class LocalizationSystem:
     def reward_terms(self, report: StepReport) -> dict[str, float]:
         cfg = self.config
         if self.ground_truth:
-            tag = float(self.tag_errors_m().mean()) if self.n_tags else 0.0
-            anchor = float(np.minimum(self.anchor_errors_m(), cfg.error_cap_m).mean())
+            tag = float(self.tag_errors_m().sum()) / self.n_tags if self.n_tags else 0.0
+            anchor = float(np.fmin(self.anchor_errors_m(), cfg.error_cap_m).sum()) / self.n_anchors
         else:
             # Residual proxy (no truth on hardware): the tag fixes' RMS residual since the last
             # calibration stands for the tag error, the predicted std for the anchor error.

@@ -75,6 +75,8 @@ from pettingzoo import ParallelEnv
 from uwb_env.config import EnvConfig
 from uwb_env.system import LocalizationSystem
 
+_PLAIN_INTS = (int, np.int64, np.int32)  # bool is a subclass of int, not the same type: refused
+
 
 def make_config(config: EnvConfig | dict | None, overrides: dict[str, Any]) -> EnvConfig:
     if config is None:
@@ -173,19 +175,22 @@ class UWBCalibrationParallelEnv(ParallelEnv, EzPickle):
 
     # -- helpers --------------------------------------------------------------------------------
     def _decode(self, actions: dict[str, Any]):
-        n = len(self.possible_agents)
         missing = [a for a in self.agents if a not in actions]
         if missing:
             raise KeyError(f"actions: missing entries for agents {missing}")
-        values = np.empty(n, dtype=np.int64)
         space = self.action_spaces[self.possible_agents[0]]
-        for i, agent in enumerate(self.possible_agents):
-            act = actions[agent]
-            if isinstance(act, np.ndarray) and act.shape == ():
-                act = act.item()
-            if isinstance(act, bool) or not isinstance(act, (int, np.integer)) or not 0 <= act < space.n:
-                raise ValueError(f"actions[{agent!r}]={act!r}: not in {space}")
-            values[i] = act
+        n_actions = int(space.n)
+        given = [actions[a] for a in self.possible_agents]
+        if all(type(v) in _PLAIN_INTS and 0 <= v < n_actions for v in given):  # the usual case, checked fast
+            values = np.array(given, dtype=np.int64)
+        else:
+            values = np.empty(len(given), dtype=np.int64)
+            for i, (agent, act) in enumerate(zip(self.possible_agents, given, strict=True)):
+                if isinstance(act, np.ndarray) and act.shape == ():
+                    act = act.item()
+                if isinstance(act, bool) or not isinstance(act, (int, np.integer)) or not 0 <= act < n_actions:
+                    raise ValueError(f"actions[{agent!r}]={act!r}: not in {space}")
+                values[i] = act
         if self.config.action_mode == "calibrate":
             return values == 1, None
         per = self.config.move_headings + 1
@@ -203,11 +208,12 @@ class UWBCalibrationParallelEnv(ParallelEnv, EzPickle):
         s = self.system
         anchor_err = s.anchor_errors_m()
         tag_err = s.tag_errors_m()
+        n_tags = max(len(tag_err), 1)  # means of no tags are 0
         shared = {
-            "mean_tag_error_m": float(tag_err.mean()) if len(tag_err) else 0.0,
-            "mean_anchor_error_m": float(anchor_err.mean()),
-            "mean_tag_error_fixed_frame_m": float(s.tag_errors_m("fixed").mean()) if len(tag_err) else 0.0,
-            "mean_anchor_error_fixed_frame_m": float(s.anchor_errors_m("fixed").mean()),
+            "mean_tag_error_m": float(tag_err.sum()) / n_tags,
+            "mean_anchor_error_m": float(anchor_err.sum()) / len(anchor_err),
+            "mean_tag_error_fixed_frame_m": float(s.tag_errors_m("fixed").sum()) / n_tags,
+            "mean_anchor_error_fixed_frame_m": float(s.anchor_errors_m("fixed").sum()) / len(anchor_err),
             "rotation_error_rad": s.rotation_error_rad(),
             "tag_errors_m": tag_err,
             "calibration_count": s.calibration_count,
@@ -224,7 +230,7 @@ class UWBCalibrationParallelEnv(ParallelEnv, EzPickle):
             # anchor terms are the residual proxy (see LocalizationSystem.reward_terms).
             "ground_truth": s.ground_truth,
         }
-        return {a: {**shared, "anchor_error_m": float(anchor_err[i])} for i, a in enumerate(self.agents)}
+        return {a: {**shared, "anchor_error_m": e} for a, e in zip(self.agents, anchor_err.tolist(), strict=True)}
 
     def _record(self, calibrating_fraction: float) -> None:
         if self.render_mode is None:  # traces exist only for rendering: no cost otherwise

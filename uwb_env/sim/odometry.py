@@ -84,9 +84,8 @@ class OdometryModel:
         if self._uniform:
             return steps * dim * cfg.uniform_error_m**2 / 3.0
         d = np.asarray(distance_m, dtype=float)
-        return (
-            2 * cfg.noise_std_m_per_sqrt_m**2 * d
-            + cfg.scale_error_std**2 * d**2
-            + cfg.yaw_noise_std_rad_per_sqrt_m**2 * d**3 / 3.0
-        )
+        # 2 sigma_w^2 d + s^2 d^2 + sigma_y^2 d^3 / 3, in Horner form (fewer array operations)
+        c1, c2 = 2 * cfg.noise_std_m_per_sqrt_m**2, cfg.scale_error_std**2
+        c3 = cfg.yaw_noise_std_rad_per_sqrt_m**2 / 3.0
+        return d * (c1 + d * (c2 + c3 * d))
 
