@@ -65,6 +65,7 @@ v0: initial release.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -209,11 +210,12 @@ class UWBCalibrationParallelEnv(ParallelEnv, EzPickle):
         anchor_err = s.anchor_errors_m()
         tag_err = s.tag_errors_m()
         n_tags = max(len(tag_err), 1)  # means of no tags are 0
+        anchor_errs = anchor_err.tolist()
         shared = {
-            "mean_tag_error_m": float(tag_err.sum()) / n_tags,
-            "mean_anchor_error_m": float(anchor_err.sum()) / len(anchor_err),
-            "mean_tag_error_fixed_frame_m": float(s.tag_errors_m("fixed").sum()) / n_tags,
-            "mean_anchor_error_fixed_frame_m": float(s.anchor_errors_m("fixed").sum()) / len(anchor_err),
+            "mean_tag_error_m": math.fsum(tag_err.tolist()) / n_tags,
+            "mean_anchor_error_m": math.fsum(anchor_errs) / len(anchor_errs),
+            "mean_tag_error_fixed_frame_m": math.fsum(s.tag_errors_m("fixed").tolist()) / n_tags,
+            "mean_anchor_error_fixed_frame_m": math.fsum(s.anchor_errors_m("fixed").tolist()) / len(anchor_errs),
             "rotation_error_rad": s.rotation_error_rad(),
             "tag_errors_m": tag_err,
             "calibration_count": s.calibration_count,
@@ -230,7 +232,7 @@ class UWBCalibrationParallelEnv(ParallelEnv, EzPickle):
             # anchor terms are the residual proxy (see LocalizationSystem.reward_terms).
             "ground_truth": s.ground_truth,
         }
-        return {a: {**shared, "anchor_error_m": e} for a, e in zip(self.agents, anchor_err.tolist(), strict=True)}
+        return {a: {**shared, "anchor_error_m": e} for a, e in zip(self.agents, anchor_errs, strict=True)}
 
     def _record(self, calibrating_fraction: float) -> None:
         if self.render_mode is None:  # traces exist only for rendering: no cost otherwise

@@ -18,6 +18,7 @@ import numpy as np
 from uwb_env.localization.robust import check_loss, irls_weights
 
 OK, TOO_FEW_RANGES, DEGENERATE, NOT_CONVERGED = 0, 1, 2, 3
+_sum = np.add.reduce  # skips ndarray.sum's Python wrapper: the tracking kernel reduces tiny arrays
 STATUS_NAMES = {OK: "ok", TOO_FEW_RANGES: "too_few_ranges", DEGENERATE: "degenerate", NOT_CONVERGED: "not_converged"}
 
 
@@ -301,6 +302,9 @@ def track_tags_2d(anchors, previous, ranges_m, range_var_m2, anchor_covariance=N
         (positions (S, M, 2), rms residual (S, M), residuals (S, M, N) fitted minus measured);
         NaN where fewer than 3 ranges, not finite, or (residuals) the range is missing.
     """
+    if anchors.shape[0] == 1 and ranges_m.shape[1] * ranges_m.shape[2] * iterations <= SMALL_TRACKING_WORK:
+        return _track_small_2d(anchors[0], previous[0], ranges_m[0], range_var_m2,
+                               None if anchor_covariance is None else anchor_covariance[0], loss, f_scale, iterations)
     # (..., 2) float -> (...) complex: a view when contiguous, no copy
     a = np.ascontiguousarray(anchors, dtype=float).view(np.complex128)[..., 0][:, None, :]
     p = np.ascontiguousarray(previous, dtype=float).view(np.complex128)[..., 0]
@@ -325,14 +329,14 @@ def track_tags_2d(anchors, previous, ranges_m, range_var_m2, anchor_covariance=N
             if not complete:
                 iv = iv * valid
         w = iv if linear else iv * irls_weights(res * np.sqrt(iv), loss, f_scale)
-        total_w, s2, g = w.sum(-1), (w * u2).sum(-1), ((w * res) * u).sum(-1)
+        total_w, s2, g = _sum(w, -1), _sum(w * u2, -1), _sum((w * res) * u, -1)
         det = total_w * total_w - (s2 * s2.conj()).real
         # tags without 3 ranges (or on a line of anchors) keep their position: det -> inf
         p = p - (total_w * g - s2 * g.conj()) * (2.0 / np.where(det > 1e-300, det, np.inf))
     res = np.abs(p[..., None] - a) - r
     n_anchors = ranges_m.shape[-1]
     if complete:
-        rms = np.sqrt((res * res).sum(-1) * (1.0 / n_anchors))
+        rms = np.sqrt(_sum(res * res, -1) * (1.0 / n_anchors))
         enough = None if n_anchors >= 3 else np.zeros(p.shape, bool)
     else:
         res = np.where(valid, res, np.nan)
@@ -341,9 +345,67 @@ def track_tags_2d(anchors, previous, ranges_m, range_var_m2, anchor_covariance=N
         enough = count >= 3
     pos = p.view(np.float64).reshape(p.shape + (2,))  # p is a fresh array: the view is ours
     # a non-finite fix has a non-finite rms
-    if enough is not None or not math.isfinite(rms.sum()):
+    if enough is not None or not math.isfinite(_sum(rms, None)):
         bad = ~np.isfinite(rms) if enough is None else ~enough | ~np.isfinite(rms)
         pos[bad] = np.nan
         rms[bad] = np.nan
         res[bad] = np.nan
     return pos, rms, res
+
+
+# One env's tags (3 tags x 4 anchors x 2 iterations = 24) take a third of the numpy kernel's
+# time in plain Python floats; numpy wins from a few dozen tag-anchor-iteration triples on.
+SMALL_TRACKING_WORK = 48
+
+
+def _track_small_2d(anchors, previous, ranges_m, range_var_m2, anchor_covariance, loss, f_scale, iterations):
+    """:func:`track_tags_2d` for one small group in scalar Python (same maths, same outputs)."""
+    if loss not in ("linear", "huber", "soft_l1", "cauchy"):
+        check_loss(loss)
+    anchor_xy = anchors.tolist()
+    if anchor_covariance is None:
+        var0, kx, ky = [range_var_m2] * len(anchor_xy), [0.0] * len(anchor_xy), [0.0] * len(anchor_xy)
+    else:
+        c = anchor_covariance.reshape(len(anchor_xy), 4).tolist()
+        var0 = [range_var_m2 + 0.5 * (ci[0] + ci[3]) for ci in c]
+        kx, ky = [0.5 * (ci[0] - ci[3]) for ci in c], [ci[1] for ci in c]
+    terms = list(zip(anchor_xy, var0, kx, ky, strict=True))
+    inv_scale = 1.0 / f_scale
+    positions, rms, residuals = [], [], []
+    for (px, py), row in zip(previous.tolist(), ranges_m.tolist(), strict=True):
+        for _ in range(iterations):
+            a11 = a12 = a22 = gx = gy = 0.0
+            for ((ax, ay), v0, cx, cy), r in zip(terms, row, strict=True):
+                if r != r:  # NaN: missing range
+                    continue
+                dx, dy = px - ax, py - ay
+                dist = max(math.hypot(dx, dy), 1e-12)
+                ux, uy = dx / dist, dy / dist
+                res = dist - r
+                w = 1.0 / (v0 + cx * (ux * ux - uy * uy) + 2.0 * cy * ux * uy)  # 1 / (sigma^2 + u^T C u)
+                if loss != "linear":
+                    z = abs(res) * math.sqrt(w) * inv_scale
+                    if loss == "huber":
+                        w = w if z <= 1.0 else w / z
+                    elif loss == "cauchy":
+                        w = w / (1.0 + z * z)
+                    else:
+                        w = w / math.sqrt(1.0 + z * z)
+                wx, wy = w * ux, w * uy
+                a11, a12, a22 = a11 + wx * ux, a12 + wx * uy, a22 + wy * uy
+                gx, gy = gx + wx * res, gy + wy * res
+            det = a11 * a22 - a12 * a12
+            if det > 1e-300:  # otherwise (no two independent directions) the tag keeps its place
+                px, py = px - (a22 * gx - a12 * gy) / det, py - (a11 * gy - a12 * gx) / det
+        res_row = [math.hypot(px - ax, py - ay) - r for (ax, ay), r in zip(anchor_xy, row, strict=True)]
+        seen = [e for e in res_row if e == e]
+        err = math.sqrt(sum(e * e for e in seen) / len(seen)) if seen else math.nan
+        if len(seen) < 3 or not math.isfinite(err):
+            px = py = err = math.nan
+            res_row = [math.nan] * len(row)
+        positions.append((px, py))
+        rms.append(err)
+        residuals.append(res_row)
+    m, n = ranges_m.shape
+    return (np.array(positions, dtype=float).reshape(1, m, 2), np.array(rms, dtype=float).reshape(1, m),
+            np.array(residuals, dtype=float).reshape(1, m, n))
