@@ -179,3 +179,29 @@ def test_rollout_hook_with_a_user_policy():
     s = res.summary()
     assert s["calibrations_per_min"] == pytest.approx(5 / (100 * 0.2 / 60))
     assert 0 < s["mean_tag_error_m"] < 2
+
+
+def test_planar_metrics_equal_the_general_frame_formulas():
+    """The 2D fast path (plain complex arithmetic) against the frame-by-frame numpy formulas."""
+    from uwb_env.localization import rigid_align
+
+    env = uwb_env.parallel_env(max_cycles=400)
+    env.reset(seed=11)
+    s = env.system
+    for t in range(120):
+        env.step({a: int(t % 40 == 0) for a in env.agents})
+        if t % 20:
+            continue
+        fast = s._planar_errors()
+        truth_a = s.world.to_estimate_frame(s.world.anchors_true)
+        truth_t = s.world.to_estimate_frame(s.world.tags_true)
+        rot, trans = rigid_align(truth_a, s.world.anchors_est, allow_reflection=False)
+        frames = {"constellation": (truth_a @ rot.T + trans, truth_t @ rot.T + trans), "fixed": (truth_a, truth_t)}
+        for frame, (ref_a, ref_t) in frames.items():
+            np.testing.assert_allclose(fast["anchor", frame], np.linalg.norm(s.world.anchors_est - ref_a, axis=1),
+                                       atol=1e-9)
+            tag = np.linalg.norm(s.tag_fix - ref_t, axis=1)
+            tag = np.where(np.isfinite(tag), np.minimum(tag, s.config.error_cap_m), s.config.error_cap_m)
+            np.testing.assert_allclose(fast["tag", frame], tag, atol=1e-9)
+        a, b = s.world.anchors_est[1] - s.world.anchors_est[0], truth_a[1] - truth_a[0]
+        assert fast["rotation"] == pytest.approx(abs(np.arctan2(a[0] * b[1] - a[1] * b[0], a @ b)), abs=1e-12)

@@ -346,26 +346,25 @@ class LocalizationSystem:
 
         Points are complex numbers: the constellation transform is the rotation e^{i theta}
         with theta the angle of sum conj(a_k) b_k over the centred true (a) and estimated (b)
-        anchors (the closed-form 2D Procrustes solution), so both frames' errors for anchors
-        and tags come out of a dozen array calls.
+        anchors (the closed-form 2D Procrustes solution). A handful of points: plain Python
+        complex arithmetic is several times cheaper here than numpy calls.
         """
-        n, world = self.n_anchors, self.world
-        truth = _as_complex(world.to_estimate_frame(world.motion.positions))
-        est_a = _as_complex(world.anchors_est)
-        mu_s, mu_t = complex(_sum(truth[:n])) / n, complex(_sum(est_a)) / n
-        align = complex(_sum((truth[:n] - mu_s).conj() * (est_a - mu_t)))
+        n, world, cap = self.n_anchors, self.world, self.config.error_cap_m
+        (r00, r01), (r10, r11) = world.frame_rotation.tolist()
+        ox, oy = world.frame_origin.tolist()
+        truth = [complex(r00 * (x - ox) + r01 * (y - oy), r10 * (x - ox) + r11 * (y - oy))
+                 for x, y in world.motion.positions.tolist()]  # anchors, then tags
+        est = [complex(x, y) for x, y in world.anchors_est.tolist() + self.tag_fix.tolist()]
+        mu_s, mu_t = sum(truth[:n]) / n, sum(est[:n]) / n
+        align = sum((t - mu_s).conjugate() * (e - mu_t) for t, e in zip(truth[:n], est[:n], strict=True))
         turn = align / abs(align) if align != 0 else 1.0
-        errors = {}
-        for frame, ref in (("constellation", (truth - mu_s) * turn + mu_t), ("fixed", truth)):
-            errors["anchor", frame] = np.abs(est_a - ref[:n])
-            if self.n_tags:
-                err = np.abs(_as_complex(self.tag_fix) - ref[n:])
-                errors["tag", frame] = np.fmin(err, self.config.error_cap_m)  # fmin: NaN -> the cap
-            else:
-                errors["tag", frame] = np.zeros(0)
-        heading_est, heading_true = complex(est_a[1] - est_a[0]), complex(truth[1] - truth[0])
-        errors["rotation"] = abs(cmath.phase(heading_true * heading_est.conjugate()))
-        return errors
+        const = [abs(e - ((t - mu_s) * turn + mu_t)) for t, e in zip(truth, est, strict=True)]
+        fixed = [abs(e - t) for t, e in zip(truth, est, strict=True)]
+        capped = [[e if e <= cap else cap for e in row[n:]] for row in (const, fixed)]  # NaN -> the cap
+        heading = (truth[1] - truth[0]) * (est[1] - est[0]).conjugate()
+        return {("anchor", "constellation"): np.array(const[:n]), ("anchor", "fixed"): np.array(fixed[:n]),
+                ("tag", "constellation"): np.array(capped[0]), ("tag", "fixed"): np.array(capped[1]),
+                "rotation": abs(cmath.phase(heading))}
 
     def anchor_errors_m(self, frame: str = "constellation") -> np.ndarray:
         """Per-anchor error; ``constellation`` (after rigid alignment) or ``fixed`` (first-calibration frame).
