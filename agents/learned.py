@@ -47,6 +47,18 @@ class LearnedPolicy:
     def reset(self, seed: int | None = None) -> None:
         pass
 
+    def incompatibility(self, config) -> str | None:
+        """Why this model cannot act in an env built from ``config`` (an ``EnvConfig``), or None."""
+        from uwb_env.system import OBS_FIELDS
+
+        per_anchor = config.sim.dim + len(OBS_FIELDS)
+        wanted = (config.sim.n_anchors * per_anchor,) if self.kind == "scheduler" else (per_anchor,)
+        expected = tuple(self.model.observation_space.shape)
+        if wanted != expected:
+            return (f"the env's observations have shape {wanted}, the model's {expected}: it was trained for "
+                    "another number of anchors (or another env)")
+        return None
+
     def _predict(self, obs: np.ndarray) -> np.ndarray:
         expected = self.model.observation_space.shape
         if obs.shape[1:] != expected:

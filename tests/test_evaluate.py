@@ -86,3 +86,17 @@ def test_several_scenarios_each_get_their_folder_and_one_csv(tmp_path):
     with open(out / "scenarios.csv") as f:
         rows = list(csv.DictReader(f))
     assert [r["scenario"] for r in rows] == [Path(s).stem for s in scenarios[:2]]
+
+
+def test_a_model_that_does_not_fit_the_scenario_is_skipped_there_and_refused_alone(tmp_path, capsys):
+    pytest.importorskip("stable_baselines3", reason="learned policies need the train extra")
+    from pathlib import Path
+
+    eight = str(Path(__file__).parents[1] / "training" / "scenarios" / "eight_anchors.yml")
+    base = dict(policies=["learned:ppo_scheduler", "never"], seeds=1, max_cycles=20, sweep=False, workers=1,
+                plots=False, progress=False)
+    with pytest.raises(ValueError, match=r"learned:ppo_scheduler.*\(80,\).*\(40,\)"):
+        main(Args(**base, config=eight, out=None))
+    results = main(Args(**base, scenarios=[eight], out=str(tmp_path)))
+    assert [r["policy"] for r in results["eight_anchors"]["summary"]] == ["never"]
+    assert "skipping learned:ppo_scheduler" in capsys.readouterr().out

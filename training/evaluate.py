@@ -70,7 +70,10 @@ class Args:
     """YAML/JSON file with EnvConfig overrides (the scenario)"""
     scenarios: list[str] = field(default_factory=list)
     """several scenario files (e.g. training/scenarios/*.yml): each is evaluated into
-    ``out/<file stem>/`` and ``out/scenarios.csv`` gathers every summary row"""
+    ``out/<file stem>/`` and ``out/scenarios.csv`` gathers every summary row; a learned
+    policy that does not fit a scenario's observations is left out of it (with a note)"""
+    skip_incompatible: bool = False
+    """leave out (with a note) policies that cannot act in the env instead of failing"""
     workers: int = 1
     """parallel processes (1 = in this process)"""
     out: str | None = "runs/evaluate"
@@ -134,8 +137,14 @@ def evaluate(args: Args) -> dict:
     specs = list(dict.fromkeys(list(args.policies) + (sweep_specs() if args.sweep else [])))
     from agents.registry import make_policy
 
-    for spec in specs:  # fail on a bad spec before any work starts
-        make_policy(spec, config.sim.dt_s)
+    for spec in list(specs):  # fail on a bad spec before any work starts
+        problem = getattr(make_policy(spec, config.sim.dt_s), "incompatibility", lambda _: None)(config)
+        if problem is None:
+            continue
+        if not args.skip_incompatible:
+            raise ValueError(f"policy {spec!r}: {problem}")
+        print(f"skipping {spec}: {problem}")
+        specs.remove(spec)
     seeds = [EVAL_SEED_BASE + args.seed_offset + i for i in range(args.seeds)]
     jobs = [(spec, seed, config_dict) for spec in specs for seed in seeds]
     if args.workers == 1:
@@ -147,7 +156,7 @@ def evaluate(args: Args) -> dict:
         with ProcessPoolExecutor(max_workers=args.workers, mp_context=context) as pool:
             it = pool.map(_run_star, jobs, chunksize=max(1, len(jobs) // (8 * args.workers)))
             episodes = list(progress(it, len(jobs), "evaluate", enabled=args.progress))
-    summary = summarize(episodes, specs, main=list(args.policies))
+    summary = summarize(episodes, specs, main=[p for p in args.policies if p in specs])
     results = {"summary": summary, "episodes": episodes, "seeds": seeds, "config": config_dict,
                "dt_s": config.sim.dt_s}
     if args.out:
@@ -315,7 +324,8 @@ def evaluate_scenarios(args: Args) -> dict:
     for path in args.scenarios:
         name = Path(path).stem
         out = os.path.join(args.out, name) if args.out else None
-        results = evaluate(replace(args, config=path, scenarios=[], out=out))
+        # A learned model fits one env shape: scenarios that change it (e.g. 8 anchors) run without it.
+        results = evaluate(replace(args, config=path, scenarios=[], out=out, skip_incompatible=True))
         print(f"\n== scenario {name} ({path})\n" + format_table(results["summary"]))
         by_scenario[name] = results
         rows += [{"scenario": name, **r} for r in results["summary"]]
