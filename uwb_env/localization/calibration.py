@@ -125,7 +125,7 @@ def calibrate_anchors(
         range_std_m: known per-range std; if given it replaces the per-pair sample std.
         min_range_std_m: floor on the per-pair std (a std from K=5 samples can be ~0).
         initializer: ``auto`` (trilateration, MDS fallback), ``trilateration`` or ``mds``.
-        max_iterations: Levenberg-Marquardt iterations.
+        max_iterations: Gauss-Newton / Levenberg-Marquardt iterations (``pair_solver``).
         restart_sigmas: with a prior, a residual above this many range stds triggers a second
             solve from the ranges alone (trilateration/MDS); the lower cost wins.
 

@@ -379,7 +379,7 @@ def _track_small_2d(anchors, previous, ranges_m, range_var_m2, anchor_covariance
                 if r != r:  # NaN: missing range
                     continue
                 dx, dy = px - ax, py - ay
-                dist = max(math.hypot(dx, dy), 1e-12)
+                dist = math.hypot(dx, dy) or 1e-12  # a tag exactly on an anchor: any direction
                 ux, uy = dx / dist, dy / dist
                 res = dist - r
                 w = 1.0 / (v0 + cx * (ux * ux - uy * uy) + 2.0 * cy * ux * uy)  # 1 / (sigma^2 + u^T C u)
