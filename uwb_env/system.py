@@ -282,22 +282,21 @@ class LocalizationSystem:
     def anchor_features(self) -> np.ndarray:
         """(n_anchors, dim + len(OBS_FIELDS)) float32 features, clipped to the declared bounds."""
         world = self.world
-        dim = self.dim
         filled = min(self._hist_index, self.config.residual_window_steps)
         rnd = world.round
-        feats = np.empty((self.n_anchors, self.obs_size), dtype=np.float32)
-        feats[:, :dim] = world.anchors_est
-        feats[:, dim] = self.time_since_calibration_s
-        feats[:, dim + 1] = np.sqrt(self.predicted_anchor_var_m2())
-        feats[:, dim + 2] = np.sqrt(self.calibration_var_m2)
-        feats[:, dim + 3] = self.last_calibration_rms_m
         if filled:
-            feats[:, dim + 4] = float(_sum(self._tag_residual_hist[:filled])) / filled
-            feats[:, dim + 5] = _sum(self._anchor_residual_hist[:filled], 0) * (1.0 / filled)
+            tag_res = float(_sum(self._tag_residual_hist[:filled])) / filled
+            own_res = (_sum(self._anchor_residual_hist[:filled], 0) * (1.0 / filled)).tolist()
         else:
-            feats[:, dim + 4 : dim + 6] = 0.0
-        feats[:, dim + 6] = float(rnd is not None)
-        feats[:, dim + 7] = rnd.progress if rnd is not None else 0.0
+            tag_res, own_res = 0.0, [0.0] * self.n_anchors
+        shared = (self.last_calibration_rms_m, tag_res)
+        status = (float(rnd is not None), rnd.progress if rnd is not None else 0.0)
+        # A few dozen numbers: Python lists and one conversion beat a dozen column writes.
+        columns = zip(world.anchors_est.tolist(), self.time_since_calibration_s.tolist(),
+                      self.predicted_anchor_var_m2().tolist(), self.calibration_var_m2.tolist(), own_res, strict=True)
+        rows = [[*pos, t, math.sqrt(max(p, 0.0)), math.sqrt(max(c, 0.0)), *shared, own, *status]
+                for pos, t, p, c, own in columns]
+        feats = np.array(rows, dtype=np.float32)
         low, high = self._bounds
         np.minimum(feats, high, out=feats)
         return np.maximum(feats, low, out=feats)

@@ -371,6 +371,7 @@ def _track_small_2d(anchors, previous, ranges_m, range_var_m2, anchor_covariance
         kx, ky = [0.5 * (ci[0] - ci[3]) for ci in c], [ci[1] for ci in c]
     terms = list(zip(anchor_xy, var0, kx, ky, strict=True))
     inv_scale = 1.0 / f_scale
+    robust = ("linear", "huber", "cauchy", "soft_l1").index(loss)  # an int: compared per range below
     positions, rms, residuals = [], [], []
     for (px, py), row in zip(previous.tolist(), ranges_m.tolist(), strict=True):
         for _ in range(iterations):
@@ -383,13 +384,13 @@ def _track_small_2d(anchors, previous, ranges_m, range_var_m2, anchor_covariance
                 ux, uy = dx / dist, dy / dist
                 res = dist - r
                 w = 1.0 / (v0 + cx * (ux * ux - uy * uy) + 2.0 * cy * ux * uy)  # 1 / (sigma^2 + u^T C u)
-                if loss != "linear":
+                if robust:
                     z = abs(res) * math.sqrt(w) * inv_scale
-                    if loss == "huber":
+                    if robust == 1:  # huber
                         w = w if z <= 1.0 else w / z
-                    elif loss == "cauchy":
+                    elif robust == 2:  # cauchy
                         w = w / (1.0 + z * z)
-                    else:
+                    else:  # soft_l1
                         w = w / math.sqrt(1.0 + z * z)
                 wx, wy = w * ux, w * uy
                 a11, a12, a22 = a11 + wx * ux, a12 + wx * uy, a22 + wy * uy
