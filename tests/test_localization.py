@@ -42,6 +42,10 @@ def well_posed(x, dim):
         return False
     rot, trans = paper_frame(x)
     in_frame = x @ rot.T + trans
+    if dim == 3:  # the third frame anchor (farthest off the x axis) must be clear, not a tie
+        off = np.sort(np.linalg.norm(in_frame[:, 1:], axis=1))
+        if off[-1] - off[-2] < 0.3:
+            return False
     # the frame's sign rules need a clear side (sum of y, and of z in 3D, away from zero)
     return abs(in_frame[:, 1].sum()) > 0.3 and (dim == 2 or abs(in_frame[:, 2].sum()) > 0.3)
 

@@ -391,10 +391,11 @@ def _initial_positions(pairs, dist, n, dim, initializer):
 def trilaterate_initial(full: np.ndarray, dim: int) -> np.ndarray:
     """The paper's first-calibration start: anchors from their ranges to anchors 0 and 1.
 
-    Anchor 0 at the origin, 1 on +x, y = +sqrt(d0k^2 - x_k^2) for anchor 2. In 2D each further
-    anchor takes the y sign that fits its range to anchor 2, then (with 5+ anchors) the sign
-    that best fits its ranges to all the others as placed by that first pass. In 3D anchors are
-    placed in turn, each with the z sign that fits the anchors already placed.
+    Anchor 0 at the origin, 1 on +x, |y| = sqrt(d0k^2 - x_k^2). In 2D the anchor farthest off the
+    x axis is placed at +y, every other anchor takes the y sign that fits its range to that one,
+    then (with 5+ anchors) the sign that best fits its ranges to all the others as placed by
+    that first pass; the mirror image is settled afterwards by the frame's sign rule. In 3D
+    anchors are placed in turn, each with the z sign that fits the anchors already placed.
     """
     n = full.shape[0]
     needed = [0, 1, 2] if dim == 3 else [0, 1]
@@ -411,7 +412,7 @@ def trilaterate_initial(full: np.ndarray, dim: int) -> np.ndarray:
     for k in range(2, n):
         xk = (full[0, k] ** 2 - full[1, k] ** 2 + d01**2) / (2 * d01)
         rest2 = max(full[0, k] ** 2 - xk**2, 0.0)
-        x[k] = _best_candidate(_trilaterate_3d(full, x, k, xk, rest2), full[k, :k], x[:k])
+        x[k] = _best_candidate(_trilaterate_3d(full, x, k, xk, rest2, scale), full[k, :k], x[:k])
     return x
 
 
@@ -424,29 +425,35 @@ def _trilaterate_2d(full: np.ndarray, d01: float, scale: float) -> np.ndarray:
     if ys[2:].max() < 1e-6 * scale:
         raise GeometryError("anchors are collinear: trilateration cannot place them off the x axis")
     if len(xs) > 3:
-        # Mirror candidates (x, +y) and (x, -y): keep the one closer to the range to anchor 2.
-        dx = xs - xs[2]
-        flip = np.abs(np.hypot(dx, ys + ys[2]) - full[2]) < np.abs(np.hypot(dx, ys - ys[2]) - full[2])
-        flip[:3] = False
+        # Mirror candidates (x, +y) and (x, -y): keep the one that better fits the range to the
+        # anchor farthest off the x axis (taken at +y; the final sign rule picks the mirror).
+        ref = 2 + int(np.argmax(ys[2:]))
+        dx = xs - xs[ref]
+        flip = np.abs(np.hypot(dx, ys + ys[ref]) - full[ref]) < np.abs(np.hypot(dx, ys - ys[ref]) - full[ref])
+        flip[:2] = False
+        flip[ref] = False
         ys[flip] *= -1.0
     if len(xs) > 4:
-        # Second pass: the sign that best fits the ranges to all other anchors.
-        dx = xs[:, None] - xs[None, :]
-        known = np.isfinite(full)
-        known.flat[:: len(xs) + 1] = False
-        up = np.where(known, (np.hypot(dx, np.abs(ys)[:, None] - ys[None, :]) - full) ** 2, 0.0).sum(1)
-        down = np.where(known, (np.hypot(dx, -np.abs(ys)[:, None] - ys[None, :]) - full) ** 2, 0.0).sum(1)
-        ys[3:] = np.where(down[3:] < up[3:], -np.abs(ys[3:]), np.abs(ys[3:]))
+        # Second pass: the sign that best fits the ranges to all other anchors as placed by the
+        # first (points as complex numbers; the diagonal and missing ranges count nothing).
+        placed = xs + 1j * ys
+        up = xs + 1j * np.abs(ys)
+        misfit = np.abs(np.stack([up, up.conj()])[:, :, None] - placed) - full  # (2, n, n)
+        misfit[:, np.arange(len(xs)), np.arange(len(xs))] = 0.0
+        cost_up, cost_down = np.add.reduce(np.fmax(misfit * misfit, 0.0), 2)  # fmax: NaN -> 0
+        sign = np.where(cost_down < cost_up, -1.0, 1.0)
+        sign[:2] = sign[ref] = 1.0  # the reference stays at +y
+        ys = np.abs(ys) * sign
     x = np.empty((len(xs), 2))
     x[:, 0], x[:, 1] = xs, ys
     return x
 
 
-def _trilaterate_3d(full, x, k, xk, rest2):
+def _trilaterate_3d(full, x, k, xk, rest2, scale):
     if k == 2:
         return np.array([[xk, np.sqrt(rest2), 0.0]])
     x2, y2 = x[2, 0], x[2, 1]
-    if abs(y2) < 1e-9:
+    if abs(y2) < 1e-6 * scale:  # relative: rounding leaves ~1e-8 of a collinear anchor's y
         raise GeometryError("anchors 0, 1, 2 are collinear: cannot fix the 3D frame")
     yk = (full[0, k] ** 2 - full[2, k] ** 2 + x2**2 + y2**2 - 2 * xk * x2) / (2 * y2)
     zk = np.sqrt(max(full[0, k] ** 2 - xk**2 - yk**2, 0.0))
