@@ -1,9 +1,12 @@
 """ParallelEnv throughput and the cost of a step that completes a calibration.
 
-Env steps/s for 4 anchors / 3 tags without calibrations (target >= 5,000 on one core), set
-beside the bare simulator step (motion + odometry + ranging, no localization) measured in the
-same run, as a ratio; and the wall time of the step that finishes a round (solver included)
-for N = 4, 8, 16 anchors. Writes benchmarks/results/bench_env.json.
+Env steps/s for 4 anchors / 3 tags without calibrations (target >= 5,000 on one core, on a
+machine where PettingZoo's particle envs run ~8,000), timed in alternating blocks with
+PettingZoo's MPE simple_spread (the issue's yardstick; ``pip install -e '.[bench]'``) and
+reported as a ratio, since this shared VM's speed drifts by tens of percent; set beside the
+bare simulator step (motion + odometry + ranging, no localization) as well. Also the batched
+vector env, and the wall time of the step that finishes a round (solver included) for
+N = 4, 8, 16 anchors. Writes benchmarks/results/bench_env.json.
 
     python benchmarks/bench_env.py [--quick]
 """
