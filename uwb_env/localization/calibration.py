@@ -436,11 +436,16 @@ def _trilaterate_2d(full: np.ndarray, d01: float, scale: float) -> np.ndarray:
     if len(xs) > 4:
         # Second pass: the sign that best fits the ranges to all other anchors as placed by the
         # first (points as complex numbers; the diagonal and missing ranges count nothing).
+        n = len(xs)
         placed = xs + 1j * ys
         up = xs + 1j * np.abs(ys)
-        misfit = np.abs(np.stack([up, up.conj()])[:, :, None] - placed) - full  # (2, n, n)
-        misfit[:, np.arange(len(xs)), np.arange(len(xs))] = 0.0
-        cost_up, cost_down = np.add.reduce(np.fmax(misfit * misfit, 0.0), 2)  # fmax: NaN -> 0
+        misfit_up = np.abs(up[:, None] - placed) - full
+        misfit_down = np.abs(up.conj()[:, None] - placed) - full
+        misfit_up.flat[:: n + 1] = 0.0
+        misfit_down.flat[:: n + 1] = 0.0
+        # fmax: a missing range (NaN) costs 0
+        cost_up = np.add.reduce(np.fmax(misfit_up * misfit_up, 0.0), 1)
+        cost_down = np.add.reduce(np.fmax(misfit_down * misfit_down, 0.0), 1)
         sign = np.where(cost_down < cost_up, -1.0, 1.0)
         sign[:2] = sign[ref] = 1.0  # the reference stays at +y
         ys = np.abs(ys) * sign
