@@ -52,11 +52,6 @@ class StepReport:
 _sum = np.add.reduce
 
 
-def _as_complex(points: np.ndarray) -> np.ndarray:
-    """(k, 2) float -> (k,) complex x + iy (a view unless a copy is needed for contiguity)."""
-    return np.ascontiguousarray(points, dtype=float).view(np.complex128)[:, 0]
-
-
 class LocalizationSystem:
     """Anchors, tags, calibration rounds and the embedded solver, stepped together.
 
@@ -315,19 +310,12 @@ class LocalizationSystem:
         # drifted or turned (both unobservable from ranges). The paper measures positions
         # relative to the anchors, so errors are taken after the rigid transform (rotation +
         # translation) that best maps the true anchors onto their estimates; rotation_error_rad
-        # and the "fixed" frame report the frame drift separately. Cached per step.
+        # and the "fixed" frame report the frame drift separately. Cached per step. (2D takes
+        # the closed form in ``_planar_errors``.)
         key = self.world.step_count
         if getattr(self, "_transform_key", None) != key:
             truth = self.world.to_estimate_frame(self.world.anchors_true)
-            if self.dim == 2:  # closed form: the rotation angle of the 2D Procrustes problem
-                mu_s, mu_t = truth.mean(0), self.world.anchors_est.mean(0)
-                a, b = truth - mu_s, self.world.anchors_est - mu_t
-                angle = np.arctan2((a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]).sum(), (a * b).sum())
-                c, s = np.cos(angle), np.sin(angle)
-                rot = np.array([[c, -s], [s, c]])
-                self._transform = rot, mu_t - rot @ mu_s
-            else:
-                self._transform = rigid_align(truth, self.world.anchors_est, allow_reflection=False)
+            self._transform = rigid_align(truth, self.world.anchors_est, allow_reflection=False)
             self._transform_key = key
         return self._transform
 
