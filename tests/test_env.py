@@ -205,3 +205,16 @@ def test_planar_metrics_equal_the_general_frame_formulas():
             np.testing.assert_allclose(fast["tag", frame], tag, atol=1e-9)
         a, b = s.world.anchors_est[1] - s.world.anchors_est[0], truth_a[1] - truth_a[0]
         assert fast["rotation"] == pytest.approx(abs(np.arctan2(a[0] * b[1] - a[1] * b[0], a @ b)), abs=1e-12)
+
+
+def test_three_dimensional_env_steps_with_finite_metrics():
+    env = uwb_env.parallel_env(sim={"dim": 3, "n_anchors": 5}, max_cycles=60)
+    obs, _ = env.reset(seed=0)
+    for t in range(60):
+        obs, rewards, _, _, infos = env.step({a: int(t % 20 == 0) for a in env.agents})
+        for agent, o in obs.items():
+            assert env.observation_space(agent).contains(o)
+        info = infos["anchor_0"]
+        assert np.isfinite([info["mean_tag_error_m"], info["mean_anchor_error_m"], info["rotation_error_rad"],
+                            info["mean_tag_error_fixed_frame_m"], rewards["anchor_0"]]).all()
+    assert info["calibration_count"] >= 3
