@@ -54,16 +54,12 @@ class LearnedPolicy:
         per_anchor = config.sim.dim + len(OBS_FIELDS)
         wanted = (config.sim.n_anchors * per_anchor,) if self.kind == "scheduler" else (per_anchor,)
         expected = tuple(self.model.observation_space.shape)
-        if wanted != expected:
-            return (f"the env's observations have shape {wanted}, the model's {expected}: it was trained for "
-                    "another number of anchors (or another env)")
-        return None
+        return None if wanted == expected else _shape_mismatch("the env's observations", wanted, expected)
 
     def _predict(self, obs: np.ndarray) -> np.ndarray:
         expected = self.model.observation_space.shape
         if obs.shape[1:] != expected:
-            raise ValueError(f"observation shape {obs.shape[1:]} does not match the model's {expected}: it was "
-                             "trained for another number of anchors (or another env)")
+            raise ValueError(_shape_mismatch("observation", obs.shape[1:], expected))
         if self.normalizer is not None:
             obs = self.normalizer.normalize_obs(obs)
         action, _ = self.model.predict(obs, deterministic=self.deterministic)
@@ -76,3 +72,8 @@ class LearnedPolicy:
             return {a: decision for a in agents}
         actions = self._predict(np.stack([observations[a] for a in agents]))
         return {a: int(x) for a, x in zip(agents, actions, strict=True)}
+
+
+def _shape_mismatch(what: str, got: tuple, expected: tuple) -> str:
+    return (f"{what} shape {got} does not match the model's {expected}: it was trained for another number of "
+            "anchors (or another env)")

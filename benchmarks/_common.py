@@ -53,6 +53,17 @@ def interleaved_median_times_s(fns: list[Callable[[], object]], repeats: int, bl
     return [sorted(t)[len(t) // 2] for t in times]
 
 
+def alternating_rates(steppers: list[Callable[[], object]], seconds: float, rounds: int) -> list[float]:
+    """Best calls/s of each stepper over ``rounds`` alternating timed blocks. Alternating makes
+    a slow phase of this shared VM hit every stepper alike; the best block is timeit's
+    convention (slower blocks measure interference, not the code)."""
+    out: list[list[float]] = [[] for _ in steppers]
+    for _ in range(rounds):
+        for fn, rates in zip(steppers, out, strict=True):
+            rates.append(rate(fn, seconds / rounds, batch=200))
+    return [max(r) for r in out]
+
+
 def print_table(title: str, header: list[str], rows: list[list[object]]) -> None:
     cells = [[str(c) for c in header]] + [[f"{c:.4g}" if isinstance(c, float) else str(c) for c in r] for r in rows]
     widths = [max(len(r[i]) for r in cells) for i in range(len(header))]

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import print_table, rate, write_results  # noqa: E402
+from _common import alternating_rates, print_table, rate, write_results  # noqa: E402
 from bench_sim import sim_step_rate  # noqa: E402
 
 import uwb_env  # noqa: E402
@@ -50,17 +50,6 @@ def mpe_stepper():
     env.reset(seed=0)
     idle = {a: 0 for a in env.agents}  # action 0: no movement
     return lambda: env.step(idle)
-
-
-def alternating_rates(steppers: list, seconds: float, rounds: int) -> list[float]:
-    """Best calls/s of each stepper over ``rounds`` alternating timed blocks. Alternating makes
-    a slow phase of this shared VM hit every stepper alike; the best block is timeit's
-    convention (slower blocks measure interference, not the code)."""
-    out: list[list[float]] = [[] for _ in steppers]
-    for _ in range(rounds):
-        for fn, rates in zip(steppers, out, strict=True):
-            rates.append(rate(fn, seconds / rounds, batch=200))
-    return [max(r) for r in out]
 
 
 def batched_rate(seconds: float, copies: int, interval: int | None = None) -> float:

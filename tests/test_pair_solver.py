@@ -92,7 +92,6 @@ def test_structure_is_cached_and_read_only(rng):
 
 @pytest.mark.parametrize("range_std_m", [None, 0.05])
 def test_complete_round_fast_path_equals_the_general_pair_combination(range_std_m, rng):
-    from uwb_env.localization.calibration import _complete_pair_data
     from uwb_env.measurements import RangeMatrix
 
     n = 6
@@ -102,11 +101,8 @@ def test_complete_round_fast_path_equals_the_general_pair_combination(range_std_
     np.fill_diagonal(mean, np.nan)
     np.fill_diagonal(count, 0)
     matrix = RangeMatrix(mean, std, count)
-    fast = _complete_pair_data(matrix, range_std_m, 0.03)
-    if range_std_m is None:
-        general = matrix.symmetric(min_std_m=0.03)
-    else:
-        general = matrix.symmetric(std_m=range_std_m)
+    fast = matrix.complete_symmetric(0.03, range_std_m)
+    general = matrix._symmetric_general(0.03, range_std_m)
     np.testing.assert_array_equal(fast[0], general[0])
     np.testing.assert_allclose(fast[1], general[1], rtol=1e-12)
     np.testing.assert_allclose(fast[2], general[2], rtol=1e-12)
@@ -114,7 +110,7 @@ def test_complete_round_fast_path_equals_the_general_pair_combination(range_std_
     for bad in (np.nan, -1.0, np.inf):
         broken = mean.copy()
         broken[2, 4] = bad
-        assert _complete_pair_data(RangeMatrix(broken, std, count), range_std_m, 0.03) is None
+        assert RangeMatrix(broken, std, count).complete_symmetric(0.03, range_std_m) is None
     missing = count.copy()
     missing[1, 3] = 0
-    assert _complete_pair_data(RangeMatrix(mean, std, missing), range_std_m, 0.03) is None
+    assert RangeMatrix(mean, std, missing).complete_symmetric(0.03, range_std_m) is None

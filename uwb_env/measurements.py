@@ -13,8 +13,10 @@ def _pair_index(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Unordered pairs i < j of n anchors, and the flat indices of (i, j) and (j, i)."""
     iu, ju = np.triu_indices(n, 1)
     pairs = np.column_stack([iu, ju])
-    pairs.flags.writeable = False  # shared between calls: callers must not modify it
-    return pairs, iu * n + ju, ju * n + iu
+    upper, lower = iu * n + ju, ju * n + iu
+    for shared in (pairs, upper, lower):
+        shared.flags.writeable = False  # shared between calls: callers must not modify them
+    return pairs, upper, lower
 
 
 @dataclass(frozen=True)
@@ -49,6 +51,35 @@ class RangeMatrix:
             The variance is max(std, min_std)^2 / count, pooled inverse-variance over both
             directions.
         """
+        complete = self.complete_symmetric(min_std_m, std_m)
+        return complete if complete is not None else self._symmetric_general(min_std_m, std_m)
+
+    def complete_symmetric(
+        self, min_std_m: float = 0.0, std_m: float | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """:meth:`symmetric` for the usual round, in a few array calls: every ordered pair
+        measured, finite and >= 0 (and stds > 0 after the floor). None for anything else."""
+        pairs, upper, lower = _pair_index(self.n_anchors)
+        mean_flat, count_flat = self.mean_m.ravel(), self.count.ravel()
+        ma, mb = mean_flat.take(upper), mean_flat.take(lower)
+        ca, cb = count_flat.take(upper), count_flat.take(lower)
+        # NaN propagates through minimum and fails ">= 0"; inf fails "< inf"
+        if not (np.minimum(ca, cb).min() > 0 and np.minimum(ma, mb).min() >= 0 and np.maximum(ma, mb).max() < np.inf):
+            return None
+        if std_m is not None:
+            info_a, info_b = ca / std_m**2, cb / std_m**2
+        else:
+            if not min_std_m > 0:
+                return None  # zero stds need the general path's special case
+            std_flat = self.std_m.ravel()
+            info_a = ca / np.maximum(std_flat.take(upper), min_std_m) ** 2
+            info_b = cb / np.maximum(std_flat.take(lower), min_std_m) ** 2
+        total = info_a + info_b
+        if not total.min() > 0:  # NaN stds
+            return None
+        return pairs, (info_a * ma + info_b * mb) / total, 1.0 / total
+
+    def _symmetric_general(self, min_std_m: float, std_m: float | None):
         pairs, upper, lower = _pair_index(self.n_anchors)
         mean_flat, count_flat = self.mean_m.ravel(), self.count.ravel()
         means = np.stack([mean_flat.take(upper), mean_flat.take(lower)])

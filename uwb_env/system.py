@@ -90,7 +90,6 @@ class LocalizationSystem:
         self.anchor_cov = np.zeros((n, dim, dim))
         self.last_calibration_rms_m = 0.0
         self.tag_fix = np.full((m, dim), np.nan)
-        self._all_tags_fixed = False
         self.tag_velocity = np.zeros((m, dim))
         self.tag_fix_age_s = np.zeros(m)
         w = cfg.residual_window_steps
@@ -218,7 +217,8 @@ class LocalizationSystem:
         # error explains suggests a fix stuck in a wrong minimum (worth a cold restart).
         restart_m = solver.tag_restart_residual_m + 2.0 * math.sqrt(float(pred_var.max()))
         anchors = world.anchors_est
-        if self.dim == 2 and self._all_tags_fixed:
+        all_fixed_before = bool(np.isfinite(self.tag_fix).all())
+        if self.dim == 2 and all_fixed_before:
             # tracking (the hot path): the lean batched Gauss-Newton, cold restarts only if stuck
             positions, rms, res = track_tags_2d(anchors[None], self.tag_fix[None], ranges[None], self.range_std_m**2,
                                                 None if cov is None else cov[None], solver.loss,
@@ -238,13 +238,12 @@ class LocalizationSystem:
             per_anchor = np.abs(np.linalg.norm(positions[:, None, :] - anchors[None], axis=-1) - ranges)
         dt = world.dt_s
         all_ok = math.isfinite(_sum(rms))  # a tag without a fix has a NaN rms
-        ok = None if all_ok else np.isfinite(rms)
-        if all_ok and self._all_tags_fixed:  # the usual step: every tag fixed now and before
+        ok = np.isfinite(rms)
+        if all_ok and all_fixed_before:  # the usual step: every tag fixed now and before
             self.tag_velocity = (positions - self.tag_fix) / (self.tag_fix_age_s + dt)[:, None]
             self.tag_fix = positions
             self.tag_fix_age_s = np.zeros(self.n_tags)
         else:
-            ok = np.ones(self.n_tags, bool) if ok is None else ok
             new = np.where(ok[:, None], positions, self.tag_fix)
             had = np.isfinite(self.tag_fix).all(1) & ok
             elapsed = np.maximum(self.tag_fix_age_s + dt, dt)[:, None]
@@ -252,14 +251,12 @@ class LocalizationSystem:
                                          self.tag_velocity)
             self.tag_fix = new
             self.tag_fix_age_s = np.where(ok, 0.0, self.tag_fix_age_s + dt)
-            self._all_tags_fixed = bool(np.isfinite(new).all())
         # Residual statistics: what a deployed system can see that its anchors went stale.
         i = self._hist_index % self.config.residual_window_steps
         if all_ok and math.isfinite(_sum(per_anchor, None)):
             self._tag_residual_hist[i] = float(_sum(rms)) / self.n_tags
             self._anchor_residual_hist[i] = _sum(per_anchor, 0) * (1.0 / self.n_tags)
-        elif ok is None or ok.any():
-            ok = np.ones(self.n_tags, bool) if ok is None else ok
+        elif ok.any():
             self._tag_residual_hist[i] = rms[ok].mean()
             seen = np.isfinite(per_anchor) & ok[:, None]
             self._anchor_residual_hist[i] = np.where(seen, per_anchor, 0.0).sum(0) / np.maximum(seen.sum(0), 1)

@@ -248,9 +248,9 @@ def _pair_data(ranges, range_std_m, min_range_std_m):
     if range_std_m is not None and not (np.isfinite(range_std_m) and range_std_m > 0):
         raise ValueError(f"range_std_m={range_std_m!r}: must be > 0")
     if isinstance(ranges, RangeMatrix):
-        fast = _complete_pair_data(ranges, range_std_m, min_range_std_m)
-        if fast is not None:
-            return fast
+        complete = ranges.complete_symmetric(min_range_std_m, range_std_m)
+        if complete is not None:  # the usual round: nothing to validate further
+            return (*complete, ranges.n_anchors)
         mean, count = np.asarray(ranges.mean_m, float), np.asarray(ranges.count)
         bad = (count > 0) & ~np.isfinite(mean)
         if bad.any():
@@ -284,33 +284,6 @@ def _pair_data(ranges, range_std_m, min_range_std_m):
     if not np.all(var > 0):
         raise ValueError("range variances must be > 0: give range_std_m or min_range_std_m > 0")
     return pairs, dist, var, mean.shape[0]
-
-
-def _complete_pair_data(ranges: RangeMatrix, range_std_m, min_range_std_m):
-    """``_pair_data`` for the usual round: every ordered pair measured, finite and >= 0.
-
-    Returns None for anything else (the general path then finds and names the problem).
-    """
-    n = ranges.n_anchors
-    pairs, upper, lower = _pair_index(n)
-    mean_flat, count_flat = ranges.mean_m.ravel(), ranges.count.ravel()
-    ma, mb = mean_flat.take(upper), mean_flat.take(lower)
-    ca, cb = count_flat.take(upper), count_flat.take(lower)
-    # NaN propagates through minimum and fails ">= 0"; inf fails "< inf"
-    if not (np.minimum(ca, cb).min() > 0 and np.minimum(ma, mb).min() >= 0 and np.maximum(ma, mb).max() < np.inf):
-        return None
-    if range_std_m is not None:
-        info_a, info_b = ca / range_std_m**2, cb / range_std_m**2
-    else:
-        if not min_range_std_m > 0:
-            return None  # zero stds need the general path's special case
-        std_flat = ranges.std_m.ravel()
-        info_a = ca / np.maximum(std_flat.take(upper), min_range_std_m) ** 2
-        info_b = cb / np.maximum(std_flat.take(lower), min_range_std_m) ** 2
-    total = info_a + info_b
-    if not total.min() > 0:  # NaN stds
-        return None
-    return pairs, (info_a * ma + info_b * mb) / total, 1.0 / total, n
 
 
 def _check_connected(pairs: np.ndarray, n: int) -> None:
@@ -356,18 +329,6 @@ def _gauge_refs(prior: np.ndarray) -> tuple[int, ...]:
     if b == 0:
         raise GeometryError("prior anchors all coincide: the frame cannot be fixed")
     return frame_refs(prior, 0, b)
-
-
-def _covariance(information: np.ndarray, free: np.ndarray, n: int, dim: int) -> np.ndarray:
-    eig = np.linalg.eigvalsh(information)
-    if eig[0] <= 1e-10 * max(eig[-1], 1e-300):
-        raise GeometryError(
-            "degenerate anchor geometry: the ranges do not fix every free coordinate "
-            "(collinear / coplanar anchors, or too few pairs for a rigid shape)"
-        )
-    cov = np.zeros((n * dim, n * dim))
-    cov[np.ix_(free, free)] = np.linalg.inv(information)
-    return cov
 
 
 # -- initializers ------------------------------------------------------------------------------
