@@ -1,6 +1,6 @@
 """Calibration-scheduling policies implementing :class:`uwb_env.env.CalibrationPolicy`."""
 
-from agents.baselines import (
+from uwb_env.agents.baselines import (
     AlwaysPolicy,
     FixedIntervalPolicy,
     NeverPolicy,

@@ -9,7 +9,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
-from agents.baselines import (
+from uwb_env.agents.baselines import (
     AlwaysPolicy,
     FixedIntervalPolicy,
     NeverPolicy,
@@ -28,7 +28,7 @@ def shipped_model(name: str) -> Path:
 
 
 def _learned(path: str, dt_s: float):
-    from agents.learned import LearnedPolicy
+    from uwb_env.agents.learned import LearnedPolicy
 
     if "/" not in path and not path.endswith(".zip"):  # a shipped model's name
         path = str(shipped_model(path))
@@ -36,7 +36,7 @@ def _learned(path: str, dt_s: float):
 
 
 def _rllib(path: str, dt_s: float):
-    from agents.learned_rllib import RLlibPolicy
+    from uwb_env.agents.learned_rllib import RLlibPolicy
 
     return RLlibPolicy.load(path)
 

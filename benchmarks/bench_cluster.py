@@ -21,7 +21,7 @@ from benchmarks._common import print_table, write_results  # noqa: E402
 
 def direct_env_steps_per_s(steps: int) -> float:
     import uwb_env
-    from agents.baselines import NeverPolicy
+    from uwb_env.agents.baselines import NeverPolicy
     from uwb_env.env.policy import rollout
 
     env = uwb_env.parallel_env(max_cycles=steps)
@@ -31,7 +31,7 @@ def direct_env_steps_per_s(steps: int) -> float:
 
 
 def rllib_steps_per_s(runners: int, iterations: int, batch: int, tmp: str) -> float:
-    from training.train_rllib import Args, main
+    from uwb_env.training.train_rllib import Args, main
 
     # iteration 1 includes start-up; time the rest
     main(Args(iterations=1, out=f"{tmp}/r{runners}", num_env_runners=runners, resume=False,
@@ -47,8 +47,8 @@ def main() -> None:
     a = p.parse_args()
     import ray
 
-    from training.sweep_tune import Args as SweepArgs
-    from training.sweep_tune import main as sweep
+    from uwb_env.training.sweep_tune import Args as SweepArgs
+    from uwb_env.training.sweep_tune import main as sweep
 
     iterations, batch = (1, 1000) if a.quick else (3, 4000)
     ray.init(num_cpus=3, include_dashboard=False, log_to_driver=False)

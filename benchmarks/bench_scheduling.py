@@ -31,7 +31,7 @@ MODEL_DIR = ROOT / "agents" / "models"  # shipped: agents/models/ppo_scheduler/m
 
 def vec_env_throughput(kind: str, steps: int) -> float:
     """Env steps/s of the training VecEnv alone (8 copies; the batched mode with 32)."""
-    from training.train import make_vec_env
+    from uwb_env.training.train import make_vec_env
 
     venv = make_vec_env("batched", 32, {}, 0) if kind == "batched" else make_vec_env("scheduler", 8, {}, 0, kind)
     venv.reset()
@@ -62,7 +62,7 @@ def main() -> None:
     a = p.parse_args()
     budget, seeds = (15.0, 2) if a.quick else (a.budget_s, a.seeds)
 
-    from training import evaluate, train
+    from uwb_env.training import evaluate, train
 
     dummy = vec_env_throughput("dummy", 2000 if a.quick else 16000)
     subproc = vec_env_throughput("subproc", 2000 if a.quick else 16000)

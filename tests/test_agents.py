@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 import uwb_env
-from agents import (
+from uwb_env.agents import (
     AlwaysPolicy,
     FixedIntervalPolicy,
     NeverPolicy,

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from agents.baselines import FixedIntervalPolicy
+from uwb_env.agents.baselines import FixedIntervalPolicy
 from uwb_env import parallel_env
 from uwb_env.batch import BatchedSystem
 from uwb_env.config import EnvConfig
@@ -64,7 +64,7 @@ def test_batched_mode_rejects_3d():
 
 def test_sb3_adapter_reports_truncation():
     pytest.importorskip("stable_baselines3")
-    from training.vec_env import BatchedSchedulerVecEnv
+    from uwb_env.training.vec_env import BatchedSchedulerVecEnv
 
     venv = BatchedSchedulerVecEnv(5, {"max_cycles": 4})
     venv.seed(0)

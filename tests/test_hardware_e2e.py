@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import uwb_env
-from agents.baselines import FixedIntervalPolicy
+from uwb_env.agents.baselines import FixedIntervalPolicy
 from uwb_env.config import EnvConfig
 from uwb_env.env.policy import rollout
 from uwb_env.hardware.backend import HardwareConfig, connect

@@ -2,8 +2,8 @@ import json
 
 import numpy as np
 
-from training.paper_data import extract, load_reference, parse_boxplots, parse_series
-from training.reproduce_paper import PAPER_SETUP, box_stats, run
+from uwb_env.training.paper_data import extract, load_reference, parse_boxplots, parse_series
+from uwb_env.training.reproduce_paper import PAPER_SETUP, box_stats, run
 
 BOX_TEX = r"""
 \addplot [black, forget plot]

@@ -5,10 +5,10 @@ import pytest
 
 pytest.importorskip("stable_baselines3", reason="the 'train' extra is not installed")
 
-from agents.learned import LearnedPolicy  # noqa: E402
-from agents.registry import make_policy  # noqa: E402
-from training.train import Args, latest_checkpoint, load_hyperparams, main  # noqa: E402
-from training.vec_env import ParallelEnvVecEnv  # noqa: E402
+from uwb_env.agents.learned import LearnedPolicy  # noqa: E402
+from uwb_env.agents.registry import make_policy  # noqa: E402
+from uwb_env.training.train import Args, latest_checkpoint, load_hyperparams, main  # noqa: E402
+from uwb_env.training.vec_env import ParallelEnvVecEnv  # noqa: E402
 from uwb_env import parallel_env  # noqa: E402
 from uwb_env.env.policy import rollout  # noqa: E402
 
@@ -106,8 +106,8 @@ def test_batched_training_mode(tmp_path, short_episodes):
 
 
 def test_shipped_model_runs_through_the_hook():
-    from agents.registry import shipped_model
-    from training.evaluate import default_policies
+    from uwb_env.agents.registry import shipped_model
+    from uwb_env.training.evaluate import default_policies
 
     assert shipped_model("ppo_scheduler").is_file()
     assert "learned:ppo_scheduler" in default_policies()

@@ -2,7 +2,7 @@
 
 Usage (also ``uwb-env evaluate``)::
 
-    python -m training.evaluate --policies fixed:10 threshold:0.15 oracle --seeds 8 --workers 2
+    python -m uwb_env.training.evaluate --policies fixed:10 threshold:0.15 oracle --seeds 8 --workers 2
 
 Per policy it reports tag error (mean, median, p95), anchor error, calibrations per minute,
 fraction of time calibrating and return, and writes into ``--out``:
@@ -43,7 +43,7 @@ METRICS = ("mean_tag_error_m", "median_tag_error_m", "p95_tag_error_m", "mean_an
 
 def default_policies() -> list[str]:
     """The baselines, plus the shipped PPO scheduler when stable-baselines3 is installed."""
-    from agents.registry import shipped_model
+    from uwb_env.agents.registry import shipped_model
 
     policies = list(DEFAULT_POLICIES)
     try:
@@ -114,7 +114,7 @@ def run_episode(spec: str, seed: int, config_dict: dict) -> dict:
 
 @functools.lru_cache(maxsize=64)
 def _cached_policy(spec: str, dt_s: float):
-    from agents.registry import make_policy
+    from uwb_env.agents.registry import make_policy
 
     return make_policy(spec, dt_s)
 
@@ -135,7 +135,7 @@ def evaluate(args: Args) -> dict:
     config = _env_config(load_overrides(args.config), args.max_cycles)
     config_dict = config.to_dict()
     specs = list(dict.fromkeys(list(args.policies) + (sweep_specs() if args.sweep else [])))
-    from agents.registry import make_policy
+    from uwb_env.agents.registry import make_policy
 
     for spec in list(specs):  # fail on a bad spec before any work starts
         problem = getattr(make_policy(spec, config.sim.dt_s), "incompatibility", lambda _: None)(config)
@@ -279,7 +279,7 @@ def _save(fig, out: str, name: str) -> str:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from agents.registry import POLICIES
+    from uwb_env.agents.registry import POLICIES
 
     d = Args(policies=[])  # the default policy list is resolved at run time (it may import SB3)
     p.add_argument("--policies", nargs="+", default=None, help="policy specs NAME[:PARAM], e.g. fixed:10 "

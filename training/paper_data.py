@@ -1,6 +1,6 @@
 """The paper's plotted numbers, read from the pgfplots data inlined in its LaTeX source.
 
-``python -m training.paper_data path/to/autocalibration-paper.tex`` extracts them into
+``python -m uwb_env.training.paper_data path/to/autocalibration-paper.tex`` extracts them into
 ``training/paper_reference.json`` (committed), which the reproduction script reads: Fig. 4's
 error series (legend -> values per simulation step) and Fig. 5's box plots (quartiles,
 whiskers, fliers) of anchor / tag translation error and x-axis rotation error.
@@ -92,7 +92,7 @@ def load_reference() -> dict:
 
 if __name__ == "__main__":
     if len(sys.argv) != 2:
-        sys.exit("usage: python -m training.paper_data path/to/autocalibration-paper.tex")
+        sys.exit("usage: python -m uwb_env.training.paper_data path/to/autocalibration-paper.tex")
     data = extract(Path(sys.argv[1]).read_text())
     REFERENCE_PATH.write_text(json.dumps(data, indent=1) + "\n")
     print(f"wrote {REFERENCE_PATH}")

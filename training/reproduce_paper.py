@@ -1,6 +1,6 @@
 """Reproduce the paper's simulation (Sec. 4, Figs. 4 and 5) from its text alone.
 
-``python -m training.reproduce_paper [--runs 40 --steps 300]`` writes into ``docs/results/``:
+``python -m uwb_env.training.reproduce_paper [--runs 40 --steps 300]`` writes into ``docs/results/``:
 ``paper_reproduction.json`` (medians and quartiles beside the paper's), ``paper_fig4.png``
 (anchor and tag errors over 55 steps, ours beside the paper's series) and ``paper_fig5.png``
 (box plots of translation and x-axis rotation error from many runs of hundreds of steps).
@@ -50,7 +50,7 @@ PAPER_SETUP = {
     },
 }
 CALIBRATION_INTERVAL_STEPS = 10
-SEED_BASE = 2_000_000  # apart from training and evaluation seeds
+SEED_BASE = 2_000_000  # apart from uwb_env.training and evaluation seeds
 
 
 @dataclass
@@ -64,7 +64,7 @@ class Args:
 
 def run(seed: int, steps: int) -> dict[str, np.ndarray]:
     """One run; per step: anchors 1..N-1 error, tag errors, signed x-axis rotation error."""
-    from agents.baselines import FixedIntervalPolicy
+    from uwb_env.agents.baselines import FixedIntervalPolicy
     from uwb_env.config import EnvConfig
     from uwb_env.env.parallel_env import UWBCalibrationParallelEnv
 
@@ -110,7 +110,7 @@ def box_stats(values: np.ndarray) -> dict[str, float]:
 
 
 def main(args: Args) -> dict:
-    from training.paper_data import load_reference
+    from uwb_env.training.paper_data import load_reference
     from uwb_env.progress import progress
 
     runs, steps = (6, 120) if args.quick else (args.runs, args.steps)

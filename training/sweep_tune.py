@@ -2,8 +2,8 @@
 
 Usage::
 
-    python -m training.sweep_tune harness --policies fixed:5 fixed:10 threshold:0.15 --seeds 8 --out runs/sweep
-    python -m training.sweep_tune sb3 --grid learning_rate=1e-4,3e-4 --total-timesteps 50000 --out runs/sb3sweep
+    python -m uwb_env.training.sweep_tune harness --policies fixed:5 fixed:10 threshold:0.15 --seeds 8 --out runs/sweep
+    python -m uwb_env.training.sweep_tune sb3 --grid learning_rate=1e-4,3e-4 --total-timesteps 50000 --out runs/sb3sweep
     ... --address auto     # on an existing cluster (default: a local Ray instance)
 
 ``harness``: one Tune trial per policy spec, each running the evaluation seeds; the driver
@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from training.hyperparams_io import parse_value
+from uwb_env.training.hyperparams_io import parse_value
 
 
 @dataclass
@@ -46,7 +46,7 @@ class Args:
 def _harness_trial(config: dict) -> None:
     from ray import tune
 
-    from training.evaluate import run_episode
+    from uwb_env.training.evaluate import run_episode
 
     episodes = [run_episode(config["spec"], seed, config["env_config"]) for seed in config["seeds"]]
     for e in episodes:  # JSON-friendly traces
@@ -59,7 +59,7 @@ def _harness_trial(config: dict) -> None:
 def _sb3_trial(config: dict) -> None:
     from ray import tune
 
-    from training import train
+    from uwb_env.training import train
 
     hp = [f"{k}={v}" for k, v in config["hp"].items()]
     record = train.main(train.Args(total_timesteps=config["total_timesteps"], out=config["out"], hp=hp,
@@ -74,7 +74,7 @@ def main(args: Args) -> dict:
     import ray
     from ray import tune
 
-    from training import evaluate
+    from uwb_env.training import evaluate
     from uwb_env.cli import load_overrides
 
     if args.kind not in ("harness", "sb3"):

@@ -2,7 +2,7 @@
 
 Usage (also ``uwb-env train``)::
 
-    python -m training.train --algo ppo --env scheduler --total-timesteps 200000 --out runs/ppo
+    python -m uwb_env.training.train --algo ppo --env scheduler --total-timesteps 200000 --out runs/ppo
 
 ``--env scheduler``: the centralized Gymnasium env (one decision for the team).
 ``--env parallel``: decentralized anchors over the PettingZoo env, one policy shared by all
@@ -28,7 +28,7 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from training.hyperparams_io import load_block
+from uwb_env.training.hyperparams_io import load_block
 
 ALGOS = ("ppo", "a2c", "dqn")
 # "batched": the scheduler task, with all training copies stepped together in numpy
@@ -92,7 +92,7 @@ def make_vec_env(kind: str, n_envs: int, env_config: dict, seed: int, vec_env: s
     import uwb_env  # noqa: F401  (registers the Gymnasium id)
 
     if kind == "batched":
-        from training.vec_env import BatchedSchedulerVecEnv
+        from uwb_env.training.vec_env import BatchedSchedulerVecEnv
 
         venv = BatchedSchedulerVecEnv(n_envs, env_config)
         venv.seed(seed)
@@ -101,7 +101,7 @@ def make_vec_env(kind: str, n_envs: int, env_config: dict, seed: int, vec_env: s
         fns = [functools.partial(_make_scheduler_env, env_config) for _ in range(n_envs)]
         venv = SubprocVecEnv(fns) if vec_env == "subproc" and n_envs > 1 else DummyVecEnv(fns)
     else:
-        from training.vec_env import ParallelEnvVecEnv
+        from uwb_env.training.vec_env import ParallelEnvVecEnv
 
         venv = ParallelEnvVecEnv([lambda: uwb_env.parallel_env(config=env_config) for _ in range(n_envs)])
     venv.seed(seed)

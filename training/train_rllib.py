@@ -2,8 +2,8 @@
 
 Usage (also ``uwb-env train --backend rllib``)::
 
-    python -m training.train_rllib --iterations 50 --out runs/rllib                # local Ray instance
-    python -m training.train_rllib --address auto --num-env-runners 8 ...          # an existing cluster
+    python -m uwb_env.training.train_rllib --iterations 50 --out runs/rllib                # local Ray instance
+    python -m uwb_env.training.train_rllib --address auto --num-env-runners 8 ...          # an existing cluster
 
 The env goes through RLlib's ``ParallelPettingZooEnv``; by default one RLModule ``shared`` is
 used by every anchor (``--policy per_anchor``: one module per anchor). Hyperparameters come
@@ -22,7 +22,7 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from training.hyperparams_io import load_block
+from uwb_env.training.hyperparams_io import load_block
 
 HYPERPARAMS = Path(__file__).with_name("hyperparams") / "rllib_ppo.yml"
 ENV_ID = "uwb_env/Parallel-v0"

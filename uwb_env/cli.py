@@ -44,23 +44,23 @@ def _simulate(args: argparse.Namespace) -> int:
 
 
 def _evaluate_args(p: argparse.ArgumentParser) -> None:
-    from training.evaluate import add_arguments
+    from uwb_env.training.evaluate import add_arguments
 
     add_arguments(p)
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    from training.evaluate import args_from_namespace, main
+    from uwb_env.training.evaluate import args_from_namespace, main
 
     main(args_from_namespace(args))
     return 0
 
 
 def _train_args(p: argparse.ArgumentParser) -> None:
-    from training.train import add_arguments
+    from uwb_env.training.train import add_arguments
 
     p.add_argument("--backend", choices=("sb3", "rllib"), default="sb3",
-                   help="sb3 (default) or rllib (Ray; see `python -m training.train_rllib --help` for its options)")
+                   help="sb3 (default) or rllib (Ray; see `python -m uwb_env.training.train_rllib --help` for its options)")
     add_arguments(p)
     p.add_argument("--iterations", type=int, default=20, help="rllib: training iterations")
     p.add_argument("--address", default=None, help="rllib: Ray cluster address (default: a local instance)")
@@ -72,7 +72,7 @@ def _train(args: argparse.Namespace) -> int:
         try:
             import ray  # noqa: F401
 
-            from training.train_rllib import Args, main
+            from uwb_env.training.train_rllib import Args, main
         except ImportError:
             print("uwb-env train --backend rllib: needs the 'cluster' extra: pip install 'uwb-env[cluster]'",
                   file=sys.stderr)
@@ -87,7 +87,7 @@ def _train(args: argparse.Namespace) -> int:
     try:
         import stable_baselines3  # noqa: F401
 
-        from training.train import args_from_namespace, main
+        from uwb_env.training.train import args_from_namespace, main
     except ImportError:
         print("uwb-env train: needs the 'train' extra: pip install 'uwb-env[train]'", file=sys.stderr)
         return 2

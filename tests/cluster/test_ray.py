@@ -11,7 +11,7 @@ import pytest
 ray = pytest.importorskip("ray", reason="the 'cluster' extra is not installed")
 
 import uwb_env  # noqa: E402
-from agents.registry import make_policy  # noqa: E402
+from uwb_env.agents.registry import make_policy  # noqa: E402
 from uwb_env.env.policy import rollout  # noqa: E402
 
 TINY = ["train_batch_size_per_learner=200", "minibatch_size=100", "num_epochs=1"]
@@ -25,7 +25,7 @@ def local_ray():
 
 
 def test_one_rllib_iteration_checkpoints_restores_and_acts(tmp_path, short_episodes):
-    from training.train_rllib import Args, main
+    from uwb_env.training.train_rllib import Args, main
 
     out = tmp_path / "rllib"
     record = main(Args(iterations=1, out=str(out), env_config=short_episodes, hp=TINY, num_env_runners=0))
@@ -45,7 +45,7 @@ def test_one_rllib_iteration_checkpoints_restores_and_acts(tmp_path, short_episo
 
 
 def test_one_policy_per_anchor(tmp_path, short_episodes):
-    from training.train_rllib import Args, main
+    from uwb_env.training.train_rllib import Args, main
 
     out = tmp_path / "per"
     main(Args(iterations=1, out=str(out), env_config=short_episodes, hp=TINY, num_env_runners=0, policy="per_anchor"))
@@ -56,7 +56,7 @@ def test_one_policy_per_anchor(tmp_path, short_episodes):
 
 
 def test_two_trial_tune_sweep_writes_the_harness_files(tmp_path):
-    from training.sweep_tune import Args, main
+    from uwb_env.training.sweep_tune import Args, main
 
     out = tmp_path / "sweep"
     record = main(Args(kind="harness", policies=["fixed:10", "threshold:0.15"], seeds=2, max_cycles=30, out=str(out)))
@@ -79,7 +79,7 @@ def test_cli_train_backend_rllib(tmp_path, short_episodes, capsys):
 
 
 def test_sb3_hyperparameter_sweep_on_tune(tmp_path, short_episodes):
-    from training.sweep_tune import Args, main
+    from uwb_env.training.sweep_tune import Args, main
 
     out = tmp_path / "sb3"
     record = main(Args(kind="sb3", grid=["learning_rate=1e-4,3e-4"], total_timesteps=256, config=short_episodes,
