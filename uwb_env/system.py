@@ -22,6 +22,7 @@ import numpy as np
 from uwb_env.config import EnvConfig
 from uwb_env.localization import LocalizationError, calibrate_anchors, locate_tags, rigid_align
 from uwb_env.localization.multilateration import refit_stuck_tags, track_tags_2d
+from uwb_env.measurements import pool_rounds
 from uwb_env.sim import RangeModel, World
 
 OBS_FIELDS = (
@@ -98,11 +99,7 @@ class LocalizationSystem:
         self._hist_index = 0
         self.last_round_links: np.ndarray | None = None
         true_start, est_start = self.world.anchors_true.copy(), self.world.anchors_est.copy()
-        matrix, _ = self.world.run_calibration_round()
-        result = calibrate_anchors(
-            self.world.round_correction.correct_matrix(matrix), dim=dim, loss=cfg.solver.loss,
-            f_scale=cfg.solver.f_scale_sigmas, range_std_m=self.range_std_m,
-        )
+        result = self._first_calibration()
         # The solution describes the robots around the round's midpoint; the solver's frame
         # becomes the estimate frame: est = R (world - origin).
         if self.ground_truth:
@@ -114,6 +111,30 @@ class LocalizationSystem:
         odometry_since_mid = (self.world.anchors_est - 0.5 * (est_start + self.world.anchors_est)) @ rot.T
         self._apply_calibration(result, odometry_since_mid)
         self._fix_tags()
+
+    # Rounds the first calibration may take: each extra round adds its exchanges to the pool.
+    FIRST_CALIBRATION_MAX_ROUNDS = 6
+
+    def _first_calibration(self):
+        """The paper's first calibration, run before the episode starts.
+
+        A single round can fail to fix the frame (dropouts disconnect the range graph, or in 3D
+        anchors on robots of similar height leave noisy ranges without a 3D embedding). A team
+        would simply keep ranging: each further round is pooled with the earlier ones (more
+        exchanges per pair, less noise) until the shape is determined.
+        """
+        cfg, pooled = self.config, None
+        for attempt in range(self.FIRST_CALIBRATION_MAX_ROUNDS):
+            matrix, _ = self.world.run_calibration_round()
+            pooled = matrix if pooled is None else pool_rounds(pooled, matrix)
+            try:
+                return calibrate_anchors(
+                    self.world.round_correction.correct_matrix(pooled), dim=self.dim, loss=cfg.solver.loss,
+                    f_scale=cfg.solver.f_scale_sigmas, range_std_m=self.range_std_m,
+                )
+            except LocalizationError as err:
+                last = err
+        raise type(last)(f"first calibration failed after {self.FIRST_CALIBRATION_MAX_ROUNDS} pooled rounds: {last}")
 
     def step(self, requests: np.ndarray, move_commands: np.ndarray | None = None) -> StepReport:
         """Advance one ``dt_s``.
@@ -176,6 +197,7 @@ class LocalizationSystem:
             result = calibrate_anchors(
                 self.world.round_correction.correct_matrix(matrix), dim=self.dim, prior=est_mid, gauge=solver.gauge,
                 loss=solver.loss, f_scale=solver.f_scale_sigmas, range_std_m=self.range_std_m,
+                prior_std_m=np.sqrt(np.maximum(self.predicted_anchor_var_m2(), self.range_std_m**2)),
             )
         except LocalizationError as err:  # e.g. dropouts disconnected the graph: keep odometry
             return f"{type(err).__name__}: {err}"

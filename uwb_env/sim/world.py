@@ -151,6 +151,16 @@ class World(RoundRunner):
         xy = center + radius * np.column_stack([np.cos(angles), np.sin(angles)])
         xy = xy + cfg.anchor_jitter_fraction * size * rng.uniform(-1, 1, (n, 2))
         xy = np.clip(xy, 0.0, size)
+        if cfg.dim == 3:
+            # Ranges fix the third coordinate only as far as the anchors leave one plane: a 3D
+            # deployment mounts them at clearly different heights. Heights are redrawn until the
+            # anchors' thickness off their best plane is at least a fifth of the height range.
+            for _ in range(100):
+                anchors = self._with_height(xy, rng)
+                centred = anchors - anchors.mean(0)
+                if np.linalg.svd(centred, compute_uv=False)[-1] >= 0.2 * cfg.area_height_m:
+                    break
+            return anchors
         return self._with_height(xy, rng)
 
     def initial_tags(self, anchors: np.ndarray, rng: np.random.Generator) -> np.ndarray:
