@@ -309,7 +309,7 @@ class SimConfig(ConfigBase):
 
 
 TRIGGERS = ("any", "majority", "all")
-ACTION_MODES = ("calibrate", "calibrate_and_move")
+ACTION_MODES = ("calibrate", "calibrate_and_move", "per_anchor")
 TAG_FALLBACKS = ("hold", "predict")
 
 

@@ -102,10 +102,11 @@ class World(RoundRunner):
         diff = pos[: self._n, None, :] - pos[None, self._n :, :]
         return self.range_model.measure(np.sqrt((diff * diff).sum(-1)), self.rng)
 
-    def start_calibration_round(self, measurements_per_pair: int | None = None) -> CalibrationRound:
-        """Begin a round at the current time; :meth:`step` fills it until ``round.done``."""
+    def start_calibration_round(self, measurements_per_pair: int | None = None, initiators=None) -> CalibrationRound:
+        """Begin a round at the current time; :meth:`step` fills it until ``round.done``.
+        ``initiators``: e.g. ``[i]`` for a per-anchor round (default: the team round)."""
         k = measurements_per_pair or self.config.calibration.measurements_per_pair
-        self.round = CalibrationRound(self.config.n_anchors, self.timing, k, self.time_s)
+        self.round = CalibrationRound(self.config.n_anchors, self.timing, k, self.time_s, initiators)
         return self.round
 
     def finish_calibration_round(self) -> CalibrationRound:
