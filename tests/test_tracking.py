@@ -64,3 +64,28 @@ def test_tracking_converges_on_moving_tags(rng):
         errors.append(np.linalg.norm(fix - tags, axis=1).max())
         assert res.shape == (1, 3, 4) and np.all(rms[0] < 0.2)
     assert max(errors[5:]) < 0.15
+
+
+def test_mirror_check_switches_a_rejected_fix_and_flags_a_true_ambiguity():
+    from uwb_env.localization.multilateration import TAG_AMBIGUOUS, TAG_OK, check_mirror_2d
+
+    var = 0.03**2
+    # well-spread anchors: a warm start stuck at the mirror across the principal axis is rejected
+    anchors = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 6.0], [0.0, 6.0]])
+    tag = np.array([2.0, 1.0])
+    ranges = np.linalg.norm(anchors - tag, axis=1)
+    centre = anchors.mean(0)
+    wrong = np.array([tag[0], 2 * centre[1] - tag[1]])  # mirror across the long axis y = 3
+    pos, status, switched = check_mirror_2d(anchors[None], wrong[None, None], ranges[None, None], var)
+    assert switched[0, 0] and status[0, 0] == TAG_OK
+    np.testing.assert_allclose(pos[0, 0], tag, atol=1e-3)
+    # near-collinear anchors: both sides fit within the noise -> ambiguous, not a confident fix
+    line = np.array([[0.0, 0.0], [5.0, 0.01], [10.0, 0.0], [15.0, 0.01]])
+    tag = np.array([7.0, 3.0])
+    ranges = np.linalg.norm(line - tag, axis=1)
+    pos, status, switched = check_mirror_2d(line[None], tag[None, None], ranges[None, None], var)
+    assert status[0, 0] == TAG_AMBIGUOUS and not switched[0, 0]
+    # an unambiguous fix stays ok
+    pos, status, switched = check_mirror_2d(anchors[None], np.array([[[2.0, 1.0]]]),
+                                            np.linalg.norm(anchors - [2.0, 1.0], axis=1)[None, None], var)
+    assert status[0, 0] == TAG_OK and not switched.any()

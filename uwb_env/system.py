@@ -21,7 +21,7 @@ import numpy as np
 
 from uwb_env.config import EnvConfig
 from uwb_env.localization import LocalizationError, calibrate_anchors, locate_tags, rigid_align
-from uwb_env.localization.multilateration import refit_stuck_tags, track_tags_2d
+from uwb_env.localization.multilateration import TAG_NO_FIX, check_mirror_2d, refit_stuck_tags, track_tags_2d
 from uwb_env.localization.relocation import relocate_anchor
 from uwb_env.measurements import pool_rounds
 from uwb_env.sim import RangeModel, World
@@ -97,6 +97,9 @@ class LocalizationSystem:
         self.tag_fix = np.full((m, dim), np.nan)
         self.tag_velocity = np.zeros((m, dim))
         self.tag_fix_age_s = np.zeros(m)
+        self.tag_status = np.full(m, TAG_NO_FIX, dtype=np.int8)  # multilateration.TAG_STATUS_NAMES
+        self.tag_refits = 0  # cold re-solves of stuck tags (diagnostics)
+        self.tag_mirror_switches = 0  # fixes the ranges rejected in favour of their mirror
         w = cfg.residual_window_steps
         self._tag_residual_hist = np.zeros(w)
         self._anchor_residual_hist = np.zeros((w, n))
@@ -300,6 +303,7 @@ class LocalizationSystem:
             positions, rms, per_anchor = positions[0], rms[0], np.abs(res[0])
             refit = refit_stuck_tags(anchors, ranges, positions, rms, restart_m, self.range_std_m, cov,
                                      solver.loss, solver.f_scale_sigmas)
+            self.tag_refits += len(refit)
             if len(refit):
                 per_anchor[refit] = np.abs(np.linalg.norm(positions[refit, None] - anchors, axis=-1) - ranges[refit])
         else:
@@ -310,6 +314,20 @@ class LocalizationSystem:
             )
             positions, rms = fix.positions, np.where(fix.ok, fix.residual_rms_m, np.nan)
             per_anchor = np.abs(np.linalg.norm(positions[:, None, :] - anchors[None], axis=-1) - ranges)
+        if self.dim == 2:
+            checked, status, switched = check_mirror_2d(
+                anchors[None], positions[None], ranges[None], self.range_std_m**2 + float(pred_var.mean()) / 2,
+                None if cov is None else cov[None], solver.loss, solver.f_scale_sigmas)
+            if switched.any():
+                positions = checked[0]
+                self.tag_mirror_switches += int(switched.sum())
+                res = np.linalg.norm(positions[:, None, :] - anchors[None], axis=-1) - ranges
+                per_anchor = np.abs(res)
+                with np.errstate(invalid="ignore"):  # a tag without ranges keeps its NaN
+                    rms = np.where(np.isfinite(rms), np.sqrt(np.nanmean(res * res, axis=1)), rms)
+            self.tag_status = np.where(np.isfinite(rms), status[0], TAG_NO_FIX).astype(np.int8)
+        else:
+            self.tag_status = np.where(np.isfinite(rms), 0, TAG_NO_FIX).astype(np.int8)
         dt = world.dt_s
         all_ok = math.isfinite(_sum(rms))  # a tag without a fix has a NaN rms
         ok = np.isfinite(rms)

@@ -239,6 +239,9 @@ class UWBCalibrationParallelEnv(ParallelEnv, EzPickle):
             "calibration_failed": report.calibration_failed if report else None,
             "requests_ignored": report.requests_ignored if report else 0,
             "round_anchor": report.round_anchor if report else -1,
+            # per tag: 0 ok, 1 ambiguous (its mirror fits the ranges as well), 2 no fix
+            "tag_status": s.tag_status.copy(),
+            "n_tags_ambiguous": int((s.tag_status == 1).sum()),
             "anchor_round_count": s.anchor_round_count,
             "reward_terms": terms,
             # False on hardware: the truth-based keys above are NaN and the reward's tag and

@@ -410,3 +410,72 @@ def _track_small_2d(anchors, previous, ranges_m, range_var_m2, anchor_covariance
     m, n = ranges_m.shape
     return (np.array(positions, dtype=float).reshape(1, m, 2), np.array(rms, dtype=float).reshape(1, m),
             np.array(residuals, dtype=float).reshape(1, m, n))
+
+
+# Per-tag verdicts of the tracker (``check_mirror_2d``).
+TAG_OK, TAG_AMBIGUOUS, TAG_NO_FIX = 0, 1, 2
+TAG_STATUS_NAMES = {TAG_OK: "ok", TAG_AMBIGUOUS: "ambiguous", TAG_NO_FIX: "no_fix"}
+
+
+def check_mirror_2d(anchors, positions, ranges_m, range_var_m2, anchor_covariance=None, loss="linear", f_scale=2.0,
+                    margin_chi2=10.83, iterations=3):
+    """The classic wrong minimum of range-only fixing, checked for every tag of every group.
+
+    A fix and its mirror across the anchors' principal axis give nearly the same ranges when
+    the anchors are near-collinear (or the tag is far outside them). The mirror is refined by
+    the tracking kernel (only where its raw misfit leaves it a chance) and compared by the
+    chi-square of the ranges:
+
+    - the mirror fits better by more than ``margin_chi2``: the ranges reject the current fix,
+      which is replaced by the mirror's (the tracker never stays in a rejected minimum);
+    - the two fit within the margin and lie clearly apart (3 range stds): ``TAG_AMBIGUOUS``
+      (a position the ranges cannot decide, not a confident one);
+    - no finite fix: ``TAG_NO_FIX``.
+
+    Args: as :func:`track_tags_2d` (``anchors`` (S, N, 2), ``positions`` (S, M, 2) the fixes,
+    ``ranges_m`` (S, M, N)). ``margin_chi2``: chi-square margin (10.83 = 1 dof at 1e-3).
+    Returns ``(positions, status, switched)``: positions with rejected fixes replaced, status
+    (S, M) int8, switched (S, M) bool.
+    """
+    anchors = np.asarray(anchors, dtype=float)
+    positions = np.array(positions, dtype=float)
+    s, m = positions.shape[:2]
+    status = np.full((s, m), TAG_OK, dtype=np.int8)
+    switched = np.zeros((s, m), dtype=bool)
+    fixed = np.isfinite(positions).all(-1)
+    status[~fixed] = TAG_NO_FIX
+    if not fixed.any() or anchors.shape[1] < 3:
+        return positions, status, switched
+    # principal axis per group (closed form of the 2x2 covariance's eigenvector)
+    za = anchors[..., 0] + 1j * anchors[..., 1]
+    centre = za.mean(1, keepdims=True)
+    d = za - centre
+    turn = np.exp(1j * np.angle((d * d).sum(1, keepdims=True)))  # e^{2i theta}
+    zp = positions[..., 0] + 1j * positions[..., 1]
+    zm = centre + turn * np.conj(zp - centre)
+
+    def chi2(z):
+        pred = np.abs(z[..., None] - za[:, None, :])
+        res = pred - ranges_m
+        return np.nansum(res * res, -1) / range_var_m2, np.isfinite(res).sum(-1)
+
+    c_fix, n_valid = chi2(zp)
+    c_raw, _ = chi2(zm)
+    # refining moves the mirror at most into the neighbouring minimum: only a raw misfit within
+    # a generous bound can end within the margin
+    candidate = fixed & (n_valid >= 3) & (c_raw < c_fix + margin_chi2 + 50.0 * n_valid) & \
+        (np.abs(zm - zp) > 3.0 * np.sqrt(range_var_m2))
+    if not candidate.any():
+        return positions, status, switched
+    start = np.where(candidate[..., None], np.stack([zm.real, zm.imag], -1), positions)
+    refined, _, _ = track_tags_2d(anchors, start, ranges_m, range_var_m2, anchor_covariance, loss, f_scale,
+                                  iterations)
+    zr = refined[..., 0] + 1j * refined[..., 1]
+    c_mir, _ = chi2(zr)
+    ok_mirror = candidate & np.isfinite(c_mir) & (np.abs(zr - zp) > 3.0 * np.sqrt(range_var_m2))
+    better = ok_mirror & (c_mir < c_fix - margin_chi2)
+    tie = ok_mirror & ~better & (np.abs(c_mir - c_fix) <= margin_chi2)
+    positions[better] = refined[better]
+    switched |= better
+    status[tie] = TAG_AMBIGUOUS
+    return positions, status, switched
