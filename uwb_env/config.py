@@ -35,6 +35,19 @@ class ConfigError(ValueError):
         super().__init__(f"{field_name}={value!r}: {reason}")
 
 
+class UnknownConfigKeyError(ConfigError, TypeError):
+    """An unknown configuration key. Also a ``TypeError``: an env constructor given a keyword it
+    does not take (TorchRL's ``GymEnv`` passes ``frameskip=1`` and tolerates only TypeError)
+    behaves like any Python callable."""
+
+    def __init__(self, field_name: str, value: Any = None, reason: str | None = None):
+        if reason is None:  # re-raised by a client with one message (gymnasium.make does)
+            Exception.__init__(self, field_name)
+            self.field, self.value = None, None
+        else:
+            super().__init__(field_name, value, reason)
+
+
 @dataclass(frozen=True)
 class ConfigBase:
     """Shared strict construction, merging and validation helpers."""
@@ -48,7 +61,7 @@ class ConfigBase:
         kwargs: dict[str, Any] = {}
         for key, value in data.items():
             if key not in known:
-                raise ConfigError(
+                raise UnknownConfigKeyError(
                     _prefix + key, value, f"unknown key for {cls.__name__}; known: {sorted(known)}"
                 )
             sub = hints[key]

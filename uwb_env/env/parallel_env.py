@@ -82,7 +82,9 @@ from pettingzoo import ParallelEnv
 from uwb_env.config import EnvConfig
 from uwb_env.system import LocalizationSystem
 
-_PLAIN_INTS = (int, np.int64, np.int32)  # bool is a subclass of int, not the same type: refused
+_PLAIN_INTS = (int, np.int64, np.int32)
+# reward_terms carries the same four keys at reset (all zero) as after every step
+_ZERO_TERMS = {"tag_error": 0.0, "anchor_error": 0.0, "calibration_time": 0.0, "calibration_start": 0.0}  # bool is a subclass of int, not the same type: refused
 
 
 def make_config(config: EnvConfig | dict | None, overrides: dict[str, Any]) -> EnvConfig:
@@ -143,6 +145,8 @@ class UWBCalibrationParallelEnv(ParallelEnv, EzPickle):
         self.history = {"tag_error_m": [], "anchor_error_m": [], "calibrating": []}
         self._record(0.0)
         report = None
+        if self.render_mode == "human":
+            self.render()
         return self._observations(), self._infos(report, {})
 
     def step(self, actions: dict[str, Any]):
@@ -236,14 +240,16 @@ class UWBCalibrationParallelEnv(ParallelEnv, EzPickle):
             "calibrating_fraction": float(report.calibrating_fraction) if report else 0.0,
             "round_started": bool(report.round_started) if report else False,
             "round_finished": bool(report.round_finished) if report else False,
-            "calibration_failed": report.calibration_failed if report else None,
+            # fixed types at reset and every step: a flag and a message ("" when none)
+            "calibration_failed": bool(report and report.calibration_failed),
+            "calibration_error": (report.calibration_failed or "") if report else "",
             "requests_ignored": report.requests_ignored if report else 0,
             "round_anchor": report.round_anchor if report else -1,
             # per tag: 0 ok, 1 ambiguous (its mirror fits the ranges as well), 2 no fix
             "tag_status": s.tag_status.copy(),
             "n_tags_ambiguous": int((s.tag_status == 1).sum()),
             "anchor_round_count": s.anchor_round_count,
-            "reward_terms": terms,
+            "reward_terms": {**_ZERO_TERMS, **terms},
             # False on hardware: the truth-based keys above are NaN and the reward's tag and
             # anchor terms are the residual proxy (see LocalizationSystem.reward_terms).
             "ground_truth": s.ground_truth,
