@@ -43,8 +43,9 @@ FREE_MOTION = {"sim": {"anchor_motion": {"model": "heading"}, "tag_motion": {"mo
 
 def _episode(args) -> float:
     interval, seed, overrides = args
-    from uwb_env import parallel_env
     from uwb_env.agents.baselines import FixedIntervalPolicy
+
+    from uwb_env import parallel_env
     from uwb_env.env.policy import rollout
 
     return float(np.mean(rollout(parallel_env(**overrides), FixedIntervalPolicy(interval), seed=seed).tag_error_m))
@@ -106,8 +107,9 @@ def before(rev: str, n: int, workers: int) -> dict:
         subprocess.run(["git", "-C", str(root), "worktree", "add", "--detach", str(tree), rev], check=True,
                        capture_output=True)
         try:
-            code = ("import json,sys; sys.path.insert(0, %r); import bench_episodes as b; "
-                    "print(json.dumps(b.catastrophic(%d, {}, %d)))" % (str(Path(__file__).parent), n, workers))
+            here = str(Path(__file__).parent)
+            code = (f"import json,sys; sys.path.insert(0, {here!r}); import bench_episodes as b; "
+                    f"print(json.dumps(b.catastrophic({n}, {{}}, {workers})))")
             env = dict(os.environ, PYTHONPATH=str(tree))
             out = subprocess.run([sys.executable, "-c", code], env=env, check=True, capture_output=True, text=True,
                                  cwd=tree)
@@ -147,7 +149,8 @@ def main() -> None:
         results[f"catastrophic_episode_rate_fixed{k}_ci_high"] = d["ci_high"]
         results[f"median_tag_error_m_fixed{k}"] = d["median_m"]
         results[f"free_motion_catastrophic_rate_fixed{k}"] = f["rate"]
-        line = f"{k:>8} {d['rate']:>13.4f} {d['ci_low']:>7.4f}-{d['ci_high']:<7.4f} {d['median_m']:>9.3f} {f['rate']:>17.4f}"
+        line = (f"{k:>8} {d['rate']:>13.4f} {d['ci_low']:>7.4f}-{d['ci_high']:<7.4f} {d['median_m']:>9.3f}"
+                f" {f['rate']:>17.4f}")
         if old:
             results[f"catastrophic_episode_rate_fixed{k}_before"] = old[k]["rate"]
             line += f" {old[k]['rate']:>16.4f}"

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
-
 from uwb_env.agents.baselines import FixedIntervalPolicy
+
 from uwb_env import parallel_env
 from uwb_env.batch import BatchedSystem
 from uwb_env.config import EnvConfig

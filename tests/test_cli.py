@@ -1,5 +1,7 @@
 import json
 
+import pytest
+
 from uwb_env.cli import main
 
 
@@ -31,3 +33,24 @@ def test_emulate_prints_the_port_names(capsys):
     assert main(["emulate", "--duration", "0.3"]) == 0
     out = capsys.readouterr().out
     assert "anchor" in out and "/dev/pts/" in out and "tag_2" in out
+
+
+@pytest.mark.parametrize(
+    "argv, needle",
+    [
+        (["evaluate", "--policies", "learned:nope.zip", "--seeds", "1"], "nope.zip"),
+        (["evaluate", "--config", "missing.yml", "--seeds", "1"], "--config missing.yml"),
+        (["evaluate", "--policies", "fixed:abc", "--seeds", "1"], "fixed:abc"),
+        (["train", "--hp", "learning_rat=1e-4", "--total-timesteps", "64"], "learning_rat"),
+    ],
+)
+def test_cli_mistakes_print_one_line_naming_the_argument_and_exit_2(argv, needle, tmp_path, capsys, monkeypatch):
+    from uwb_env.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    if argv[0] == "train":
+        argv = [*argv, "--out", str(tmp_path / "run")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and needle in err
+    assert not (tmp_path / "run").exists()  # nothing half-written

@@ -126,6 +126,16 @@ def latest_checkpoint(folder: Path) -> tuple[Path, int] | None:
     return best
 
 
+def _check_hyperparams(algo_cls, hp: dict) -> None:
+    import inspect
+
+    known = set(inspect.signature(algo_cls.__init__).parameters) - {"self", "policy", "env"}
+    unknown = sorted(set(hp) - known)
+    if unknown:
+        raise ValueError(f"hyperparameter {unknown[0]!r} (from --hp or the YAML): not an argument of "
+                         f"{algo_cls.__name__}; known: {', '.join(sorted(known))}")
+
+
 def main(args: Args) -> dict:
     """Train (or resume); returns the run record also written to ``out/run.json``."""
     import stable_baselines3 as sb3
@@ -145,10 +155,11 @@ def main(args: Args) -> dict:
     normalize = bool(hp.pop("normalize", False))
     norm_reward = bool(hp.pop("norm_reward", False))
     policy = hp.pop("policy", "MlpPolicy")
+    algo_cls = {"ppo": sb3.PPO, "a2c": sb3.A2C, "dqn": sb3.DQN}[args.algo]
+    _check_hyperparams(algo_cls, hp)  # before anything is written: a typo leaves no empty run folder
     out = Path(args.out)
     ckpt_dir = out / "checkpoints"
     ckpt_dir.mkdir(parents=True, exist_ok=True)
-    algo_cls = {"ppo": sb3.PPO, "a2c": sb3.A2C, "dqn": sb3.DQN}[args.algo]
 
     venv = make_vec_env(args.env, n_envs, env_config, args.seed, args.vec_env)
     # validation on the single env (the batched mode has the same observations and reward)

@@ -6,18 +6,24 @@ import argparse
 import json
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 
-def load_overrides(path: str | None) -> dict:
+def load_overrides(path: str | None, option: str = "--config") -> dict:
     """Read a YAML/JSON mapping of config overrides (``None`` -> empty)."""
     if path is None:
         return {}
     import yaml
 
-    with open(path) as f:
-        data = yaml.safe_load(f) or {}
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"{option} {path}: no such file")
+    try:
+        with open(path) as f:
+            data = yaml.safe_load(f) or {}
+    except yaml.YAMLError as err:
+        raise ValueError(f"{option} {path}: not YAML/JSON ({str(err).splitlines()[0]})") from None
     if not isinstance(data, dict):
-        raise SystemExit(f"--config {path}: expected a mapping at the top level")
+        raise ValueError(f"{option} {path}: expected a mapping at the top level")
     return data
 
 
@@ -60,7 +66,7 @@ def _train_args(p: argparse.ArgumentParser) -> None:
     from uwb_env.training.train import add_arguments
 
     p.add_argument("--backend", choices=("sb3", "rllib"), default="sb3",
-                   help="sb3 (default) or rllib (Ray; see `python -m uwb_env.training.train_rllib --help` for its options)")
+                   help="sb3 or rllib (Ray; see `python -m uwb_env.training.train_rllib --help` for its options)")
     add_arguments(p)
     p.add_argument("--iterations", type=int, default=20, help="rllib: training iterations")
     p.add_argument("--address", default=None, help="rllib: Ray cluster address (default: a local instance)")
@@ -153,7 +159,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", required=True)
     for name, (add_args, _, help_text) in COMMANDS.items():
-        add_args(sub.add_parser(name, help=help_text, description=help_text))
+        add_args(sub.add_parser(name, help=help_text, description=help_text,
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter))
     return parser
 
 
@@ -166,8 +173,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ConfigError as err:
         print(f"uwb-env {args.command}: invalid configuration: {err}", file=sys.stderr)
         return 2
-    except ValueError as err:  # e.g. a bad policy spec or count: one clear line, no traceback
-        print(f"uwb-env {args.command}: {err}", file=sys.stderr)
+    except (ValueError, FileNotFoundError, IsADirectoryError, PermissionError) as err:
+        # a bad policy spec, count, file or hyperparameter: one clear line, no traceback
+        text = err.strerror + f": {err.filename!r}" if isinstance(err, OSError) and err.filename else str(err)
+        print(f"uwb-env {args.command}: error: {text}", file=sys.stderr)
         return 2
 
 
