@@ -255,7 +255,7 @@ def main(argv=None) -> dict:
     fig["rmse_over_crlb_tags"] = float(np.sqrt(((fix.positions - tags) ** 2).sum(1).mean() / bound.mean()))
     print(f"\nTags (4 anchors): RMSE/sqrt(CRLB) {fig['rmse_over_crlb_tags']:.3f}")
     fig["bench_seconds"] = time.perf_counter() - start
-    write_results("bench_localization", fig, args.quick)
+    write_results("bench_localization_quick" if args.quick else "bench_localization", fig, args.quick)
     return fig
 
 

@@ -9,6 +9,7 @@ from uwb_env.localization.calibration import CalibrationResult, calibrate_anchor
 from uwb_env.localization.errors import (
     DisconnectedGraphError,
     GeometryError,
+    InvalidPositionError,
     InvalidRangeError,
     LocalizationError,
     TooFewAnchorsError,
@@ -21,6 +22,7 @@ __all__ = [
     "CalibrationResult",
     "DisconnectedGraphError",
     "GeometryError",
+    "InvalidPositionError",
     "InvalidRangeError",
     "LocalizationError",
     "PairRangeModel",

@@ -13,6 +13,10 @@ class InvalidRangeError(LocalizationError):
     """A range is non-finite where it must be finite, or negative."""
 
 
+class InvalidPositionError(LocalizationError):
+    """A given position (anchors of a tag fix, a prior) is non-finite."""
+
+
 class DisconnectedGraphError(LocalizationError):
     """The inter-anchor range graph splits into components that cannot be related."""
 

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from uwb_env.localization.errors import InvalidPositionError, InvalidRangeError
 from uwb_env.localization.robust import check_loss, irls_weights
 
 OK, TOO_FEW_RANGES, DEGENERATE, NOT_CONVERGED = 0, 1, 2, 3
@@ -100,6 +101,19 @@ def locate_tags(
     return result
 
 
+def _check_tag_inputs(anchors, ranges_m, range_std_m) -> None:
+    """Typed errors instead of NaN fixes: NaN marks a missing range; anything else must be usable."""
+    if not np.isfinite(anchors).all():
+        raise InvalidPositionError(f"anchors: non-finite position {anchors[~np.isfinite(anchors).all(1)][0]}")
+    bad = np.isinf(ranges_m) | (ranges_m < 0)
+    if bad.any():
+        raise InvalidRangeError(f"ranges_m: range {ranges_m[bad][0]} (ranges must be >= 0, NaN when missing)")
+    std = np.broadcast_to(np.asarray(range_std_m, dtype=float), ranges_m.shape)
+    bad = np.isfinite(ranges_m) & ~((std > 0) & np.isfinite(std))
+    if bad.any():
+        raise InvalidRangeError(f"range_std_m: {std[bad][0]} for a measured range (must be finite and > 0)")
+
+
 def _locate(anchors, ranges_m, range_std_m, anchor_covariance, loss, f_scale, initial, max_iterations, tol_m,
             with_covariance) -> TagFixResult:
     check_loss(loss)
@@ -109,8 +123,7 @@ def _locate(anchors, ranges_m, range_std_m, anchor_covariance, loss, f_scale, in
     dim = anchors.shape[1]
     if anchors.shape[0] != n_anchors:
         raise ValueError(f"ranges_m has {n_anchors} columns but anchors has {anchors.shape[0]} rows")
-    if np.any(ranges_m < 0):
-        raise ValueError("ranges_m: negative range")
+    _check_tag_inputs(anchors, ranges_m, range_std_m)
     valid = np.isfinite(ranges_m)
     n_ranges = valid.sum(axis=1)
     enough = n_ranges >= dim + 1
