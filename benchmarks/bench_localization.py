@@ -114,7 +114,7 @@ def accuracy_case(kind, n, k, trials, rng, missing=0.0, nlos=0.0, loss="linear")
         try:
             res = calibrate_anchors(m, loss=loss) if loss != "linear" else calibrate_anchors(m)
             e2 = float(((res.positions - truth) ** 2).sum())
-            ok = res.converged
+            ok = res.converged and not res.ambiguous
         except LocalizationError:
             e2, ok, fails = np.inf, False, fails + 1
         sq.append(e2)
@@ -198,7 +198,7 @@ def main(argv=None) -> dict:
     fig["rmse_over_crlb_default_worst"] = worst_ratio
     fig["rounds_over_10x_total"] = worst_over
     print_table(f"Default call calibrate_anchors(rm): sigma={SIGMA:.4f} m (targets ratio <= 1.05, 0 rounds >= 10x)",
-                ["case", "trials", "RMSE/sqrt(CRLB)", "rounds >= 10x", "wrong & converged rate", "error rate"], rows)
+                ["case", "trials", "RMSE/sqrt(CRLB)", "rounds >= 10x", "wrong & converged & not ambiguous rate", "error rate"], rows)
 
     rows = []
     for n in (8, 16):

@@ -241,6 +241,14 @@ def calibrate_anchors(
             raise SolverArgumentError(f"prior_std_m={prior_std_m!r}: must be finite and > 0 for every anchor")
         problem.prior, problem.prior_weight = prior, dim / std**2
     best, ambiguous = problem.select(candidates, prior)
+    if len(pairs) < n * (n - 1) // 2 and (prior is None or not best.fit_ok):
+        # Missing pairs: every deterministic start can sit in a fold whose cost is 100x the
+        # truth's, or the graph may admit a second shape (flip) that fits as well, which only
+        # another basin reveals (then ``ambiguous``). More basins: SMACOF from seeded random shapes.
+        more = problem.solve_starts(refs, _random_smacof_starts(problem, RANDOM_STARTS))
+        if more:
+            candidates += more
+            best, ambiguous = problem.select(candidates, prior)
     tried = len(candidates)
     if not best.fit_ok:
         best, extra = problem.unfold(refs, best)
@@ -578,6 +586,18 @@ def _cold_starts(problem: _Problem, initializer: str) -> list[tuple[str, np.ndar
         # so lift it off the plane along MDS's third axis and let least squares find the heights.
         starts.append(("mds+lift", _lifted_mds(full)))
     return starts
+
+
+RANDOM_STARTS = 12
+
+
+def _random_smacof_starts(problem: _Problem, count: int) -> list[tuple[str, np.ndarray]]:
+    """SMACOF (measured pairs only) from ``count`` random shapes of the ranges' extent, seeded
+    so the result is reproducible."""
+    rng = np.random.default_rng(0)
+    scale = float(np.nanmedian(problem.full[np.isfinite(problem.full) & (problem.full > 0)]))
+    return [("smacof-random", smacof(problem.full, scale * rng.standard_normal((problem.n, problem.dim)),
+                                     problem.inv_var, problem.pairs)) for _ in range(count)]
 
 
 def _lifted_mds(full: np.ndarray) -> np.ndarray:
