@@ -105,6 +105,8 @@ def run_episode(spec: str, seed: int, config_dict: dict) -> dict:
     config = EnvConfig.from_dict(config_dict)
     env = UWBCalibrationParallelEnv(config)
     policy = _cached_policy(spec, config.sim.dt_s)  # reset() by rollout; a saved model is read once
+    if hasattr(policy, "bind"):  # planners on the true state (lookahead) need the env itself
+        policy.bind(env)
     result = rollout(env, policy, seed=seed)
     return {
         "policy": spec, "seed": seed, "uses_ground_truth": bool(policy.uses_ground_truth),
