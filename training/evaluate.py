@@ -125,10 +125,23 @@ def _run_star(job):
     return run_episode(*job)
 
 
+def run_jobs(jobs: list[tuple], workers: int = 1, label: str = "evaluate", show: bool = True) -> list[dict]:
+    """Run ``run_episode(spec, seed, config_dict)`` for every job, in ``workers`` processes."""
+    from uwb_env.progress import progress
+
+    if workers == 1:
+        return [run_episode(*job) for job in progress(jobs, len(jobs), label, enabled=show)]
+    # forkserver, not fork: forking a process that has torch's thread pools running (a
+    # learned policy was loaded, or training just ran) can deadlock the children.
+    context = multiprocessing.get_context("forkserver")
+    with ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
+        it = pool.map(_run_star, jobs, chunksize=max(1, len(jobs) // (8 * workers)))
+        return list(progress(it, len(jobs), label, enabled=show))
+
+
 def evaluate(args: Args) -> dict:
     """Run every policy on every evaluation seed; write the files; return the results."""
     from uwb_env.cli import load_overrides
-    from uwb_env.progress import progress
 
     if args.seeds < 1:
         raise ValueError(f"seeds={args.seeds!r}: must be >= 1")
@@ -149,15 +162,7 @@ def evaluate(args: Args) -> dict:
         specs.remove(spec)
     seeds = [EVAL_SEED_BASE + args.seed_offset + i for i in range(args.seeds)]
     jobs = [(spec, seed, config_dict) for spec in specs for seed in seeds]
-    if args.workers == 1:
-        episodes = [run_episode(*job) for job in progress(jobs, len(jobs), "evaluate", enabled=args.progress)]
-    else:
-        # forkserver, not fork: forking a process that has torch's thread pools running (a
-        # learned policy was loaded, or training just ran) can deadlock the children.
-        context = multiprocessing.get_context("forkserver")
-        with ProcessPoolExecutor(max_workers=args.workers, mp_context=context) as pool:
-            it = pool.map(_run_star, jobs, chunksize=max(1, len(jobs) // (8 * args.workers)))
-            episodes = list(progress(it, len(jobs), "evaluate", enabled=args.progress))
+    episodes = run_jobs(jobs, args.workers, "evaluate", args.progress)
     summary = summarize(episodes, specs, main=[p for p in args.policies if p in specs])
     results = {"summary": summary, "episodes": episodes, "seeds": seeds, "config": config_dict,
                "dt_s": config.sim.dt_s}
