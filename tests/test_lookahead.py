@@ -4,12 +4,12 @@ import copy
 
 import numpy as np
 import pytest
-
 from uwb_env.agents.lookahead import ClairvoyantPolicy, LookaheadPolicy
 from uwb_env.agents.registry import make_policy
+from uwb_env.training.evaluate import format_table, summarize
+
 from uwb_env.env.parallel_env import UWBCalibrationParallelEnv
 from uwb_env.env.policy import rollout
-from uwb_env.training.evaluate import format_table, summarize
 
 SMALL = dict(horizon_steps=8, n_futures=2, base_interval_steps=6, decide_every_steps=2)
 
@@ -54,9 +54,11 @@ def test_specs_build_ground_truth_policies():
     assert make_policy("clairvoyant").clairvoyant and make_policy("clairvoyant").n_futures == 1
     with pytest.raises(ValueError):
         make_policy("lookahead:0")
-    rows = summarize([{"policy": "lookahead:12", "uses_ground_truth": True, **{m: 0.1 for m in (
-        "mean_tag_error_m", "median_tag_error_m", "p95_tag_error_m", "mean_anchor_error_m",
-        "calibrations_per_min", "fraction_calibrating", "return")}}], ["lookahead:12"], ["lookahead:12"])
+    metrics = ("mean_tag_error_m", "median_tag_error_m", "p95_tag_error_m", "mean_anchor_error_m",
+               "calibrations_per_min", "fraction_calibrating", "return")
+    episodes = [{"policy": "lookahead:12", "seed": s, "uses_ground_truth": True, **{m: 0.1 + s for m in metrics}}
+                for s in range(3)]
+    rows = summarize(episodes, ["lookahead:12"], ["lookahead:12"])
     assert "lookahead:12 (GT)" in format_table(rows)
 
 

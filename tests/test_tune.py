@@ -4,7 +4,6 @@ import json
 
 import numpy as np
 import pytest
-
 from uwb_env.agents.registry import make_policy
 from uwb_env.training.tune import Args, load_tuned, tune, tune_family
 

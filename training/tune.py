@@ -102,8 +102,9 @@ class Args:
 
 def tune(args: Args) -> dict:
     """Tune every family of ``args.families`` on the env of ``args.config``; write ``args.out``."""
-    from uwb_env.cli import load_overrides
     from uwb_env.training.evaluate import _env_config, run_jobs
+
+    from uwb_env.cli import load_overrides
 
     unknown = [f for f in args.families if f not in FAMILIES]
     if unknown:
