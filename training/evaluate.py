@@ -75,6 +75,11 @@ class Args:
     """several scenario files (e.g. training/scenarios/*.yml): each is evaluated into
     ``out/<file stem>/`` and ``out/scenarios.csv`` gathers every summary row; a learned
     policy that does not fit a scenario's observations is left out of it (with a note)"""
+    suite: str | None = None
+    """run the scenario suite (a suite YAML; "default": training/scenarios/suite/suite.yml)
+    with ``seeds`` test seeds per scenario, in parallel; see ``training.suite``"""
+    suite_scenarios: list[str] = field(default_factory=list)
+    """only these scenarios of the suite"""
     skip_incompatible: bool = False
     """leave out (with a note) policies that cannot act in the env instead of failing"""
     workers: int = 1
@@ -364,6 +369,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", default=None, help="YAML/JSON file with EnvConfig overrides")
     p.add_argument("--scenarios", nargs="+", default=[], help="several scenario files (e.g. "
                    "training/scenarios/*.yml), each evaluated into OUT/<stem>/")
+    p.add_argument("--suite", nargs="?", const="default", default=None, metavar="SUITE_YML",
+                   help="run the scenario suite (default training/scenarios/suite/suite.yml): per-scenario and "
+                   "aggregate tables and a performance profile in OUT")
+    p.add_argument("--suite-scenarios", nargs="+", default=[], metavar="NAME", help="only these suite scenarios")
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="parallel processes")
     p.add_argument("--tuned", default=None, help="a `uwb-env tune` result file: adds the tuned heuristics and "
                    "compares every policy with the best of them (default: the shipped tuning of the default "
@@ -382,6 +391,17 @@ def args_from_namespace(ns: argparse.Namespace) -> Args:
 
 
 def main(args: Args) -> dict:
+    if args.suite:
+        from uwb_env.training.suite import format_suite, run_suite
+
+        result = run_suite(list(args.policies), args.seeds, args.workers, args.out,
+                           None if args.suite == "default" else args.suite, args.suite_scenarios or None,
+                           plots=args.plots, show=args.progress)
+        print(format_suite(result))
+        if args.out:
+            print(f"wrote {args.out}/ (suite_per_scenario.csv, suite_aggregate.csv, <scenario>/"
+                  f"{', performance_profile.png' if args.plots else ''})")
+        return result
     if args.scenarios:
         return evaluate_scenarios(args)
     results = evaluate(args)
