@@ -64,6 +64,8 @@ POLICIES: dict[str, tuple[Callable, str]] = {
     "never": (lambda p, dt: NeverPolicy(), "-"),
     "always": (lambda p, dt: AlwaysPolicy(), "-"),
     "random": (lambda p, dt: RandomPolicy(float(p or 0.05)), "request probability per step"),
+    "per_anchor_threshold": (lambda p, dt: _per_anchor_threshold(p), "per-anchor predicted std threshold (m); "
+                             "needs action_mode=per_anchor"),
     "oracle": (lambda p, dt: OraclePolicy(float(p or 0.3)), "true mean anchor error threshold (m); GROUND TRUTH"),
     "lookahead": (lambda p, dt: _lookahead(p, False), "H[@K]: planner over sampled futures, horizon H steps "
                   "(default 30), base fixed interval K (default 10); GROUND TRUTH"),
@@ -76,6 +78,12 @@ POLICIES: dict[str, tuple[Callable, str]] = {
 
 class PolicySpecError(ValueError):
     """A policy spec that names no known policy or carries a bad parameter."""
+
+
+def _per_anchor_threshold(param):
+    from uwb_env.agents.per_anchor import PerAnchorThresholdPolicy
+
+    return PerAnchorThresholdPolicy(float(param or 0.15))
 
 
 def make_policy(spec: str, dt_s: float = 0.2):

@@ -60,3 +60,20 @@ def test_robots_keep_moving_during_the_round(rng):
     assert not np.isclose(d_start, d_end, atol=0.05)
     # anchor 0 initiates first, so its ranges to 1 are taken near the round's start
     assert abs(measured - d_start) < abs(measured - d_end)
+
+
+def test_a_per_anchor_round_is_one_initiator_block_of_the_team_round():
+    from uwb_env.config import CalibrationConfig
+    from uwb_env.sim.calibration_round import CalibrationRound, RoundTiming
+
+    timing = RoundTiming.fit(CalibrationConfig())
+    team_t, team_i, team_r = timing.schedule(5, 3)
+    one_t, one_i, one_r = timing.schedule(5, 3, initiators=[2])
+    assert set(one_i.tolist()) == {2} and sorted(set(one_r.tolist())) == [0, 1, 3, 4]
+    assert len(one_t) * 5 == len(team_t)
+    # a team round is every anchor's block in turn: five per-anchor rounds take its time
+    assert 5 * timing.duration_s(5, 3, n_initiators=1) == pytest.approx(timing.duration_s(5, 3))
+    rnd = CalibrationRound(5, timing, 3, 10.0, initiators=[2])
+    assert rnd.end_time_s == pytest.approx(10.0 + timing.duration_s(5, 3, 1)) and rnd.times_s[-1] <= rnd.end_time_s
+    with pytest.raises(ValueError, match="initiators"):
+        timing.schedule(5, 3, initiators=[7])

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from uwb_env.localization import GeometryError, PairRangeModel
+from uwb_env.localization import GeometryError, InvalidRangeError, PairRangeModel
 from uwb_env.localization.calibration import _free_mask
 from uwb_env.localization.pair_solver import pair_residuals, pair_structure, solve_pair_ranges
 
@@ -106,11 +106,16 @@ def test_complete_round_fast_path_equals_the_general_pair_combination(range_std_
     np.testing.assert_array_equal(fast[0], general[0])
     np.testing.assert_allclose(fast[1], general[1], rtol=1e-12)
     np.testing.assert_allclose(fast[2], general[2], rtol=1e-12)
-    # anything unusual goes to the general path, which names the problem
-    for bad in (np.nan, -1.0, np.inf):
+    # non-finite measured ranges are refused when the matrix is built; a range far below zero
+    # goes to the general path, which names the problem
+    for bad in (np.nan, np.inf):
         broken = mean.copy()
         broken[2, 4] = bad
-        assert RangeMatrix(broken, std, count).complete_symmetric(0.03, range_std_m) is None
+        with pytest.raises(InvalidRangeError, match=r"mean_m\[2, 4\]"):
+            RangeMatrix(broken, std, count)
+    broken = mean.copy()
+    broken[2, 4] = -5.0
+    assert RangeMatrix(broken, std, count).complete_symmetric(0.03, range_std_m) is None
     missing = count.copy()
     missing[1, 3] = 0
     assert RangeMatrix(mean, std, missing).complete_symmetric(0.03, range_std_m) is None

@@ -112,7 +112,9 @@ def test_shipped_model_runs_through_the_hook():
     assert shipped_model("ppo_scheduler").is_file()
     assert "learned:ppo_scheduler" in default_policies()
     policy = make_policy("learned:ppo_scheduler")
-    result = rollout(parallel_env(max_cycles=300), policy, seed=1)
+    # trained on free motion (the old default, now training/scenarios/free_motion.yml)
+    free = {"anchor_motion": {"model": "heading"}, "tag_motion": {"model": "heading"}}
+    result = rollout(parallel_env(max_cycles=300, sim=free), policy, seed=1)
     assert result.steps == 300 and 0 < result.round_started.sum() < 100  # it calibrates, not always
 
 

@@ -170,7 +170,8 @@ class BatchedSystem:
         try:
             result = calibrate_anchors(self.range_model.correct_matrix(rnd.result()), dim=2, prior=est_mid,
                                        gauge=solver.gauge, loss=solver.loss, f_scale=solver.f_scale_sigmas,
-                                       range_std_m=self.range_std_m)
+                                       range_std_m=self.range_std_m,
+                                       prior_std_m=np.sqrt(np.maximum(self._predicted_var_of(k), self.range_std_m**2)))
         except LocalizationError:
             return False
         self._apply(k, result, self.anchors_est[k] - est_mid)
@@ -191,6 +192,11 @@ class BatchedSystem:
     def predicted_anchor_var_m2(self) -> np.ndarray:
         drift = self.odometry.expected_error_var_m2(self.distance_since_calibration_m, self.steps_since_calibration, 2)
         return self.calibration_var_m2 + drift
+
+    def _predicted_var_of(self, k: int) -> np.ndarray:
+        drift = self.odometry.expected_error_var_m2(self.distance_since_calibration_m[k],
+                                                    self.steps_since_calibration[k], 2)
+        return self.calibration_var_m2[k] + drift
 
     def _fix_tags(self, copies: np.ndarray, cold: bool = False) -> None:
         if self.M == 0 or not copies.any():

@@ -135,7 +135,7 @@ def _deep_merge(base: dict[str, Any], changes: dict[str, Any]) -> None:
             base[key] = value
 
 
-MOTION_MODELS = ("heading", "random_waypoint", "stop_and_go", "static")
+MOTION_MODELS = ("heading", "random_waypoint", "stop_and_go", "static", "patrol", "inside_hull")
 
 
 @dataclass(frozen=True)
@@ -145,7 +145,12 @@ class MotionConfig(ConfigBase):
     ``heading`` is the paper's model: each robot keeps a heading and every move gets Gaussian
     noise. ``random_waypoint`` drives to uniformly drawn waypoints and pauses there.
     ``stop_and_go`` is ``heading`` with random pauses. Robots reflect off the area's walls.
-    Speeds and pause lengths are drawn per robot per episode, so scenarios differ.
+    ``patrol`` (the default for anchors): random waypoints within ``patrol_radius_m`` of the
+    robot's starting slot, so the team keeps the formation it was deployed in around the work
+    area. ``inside_hull`` (the default for tags): random waypoints inside the polygon of the
+    anchors' starting slots, so tags stay where the anchors can localize them (the paper's
+    setup: tags inside the anchors' polygon). Speeds and pause lengths are drawn per robot per
+    episode, so scenarios differ.
     """
 
     model: str = "heading"
@@ -156,9 +161,11 @@ class MotionConfig(ConfigBase):
     pause_rate_per_s: float = 0.05
     pause_min_s: float = 1.0
     pause_max_s: float = 6.0
+    patrol_radius_m: float = 1.5
 
     def __post_init__(self) -> None:
         self._choice("model", MOTION_MODELS)
+        self._positive("patrol_radius_m")
         self._non_negative(
             "speed_min_mps",
             "heading_noise_std_rad_per_sqrt_s",
@@ -291,8 +298,12 @@ class SimConfig(ConfigBase):
     area_size_m: float = 10.0
     area_height_m: float = 3.0
     anchor_jitter_fraction: float = 0.1
-    anchor_motion: MotionConfig = field(default_factory=MotionConfig)
-    tag_motion: MotionConfig = field(default_factory=MotionConfig)
+    # A team built for localization keeps its formation around the work area and its tags
+    # inside it (see MotionConfig); free motion ("heading") is the named stress scenario
+    # training/scenarios/free_motion.yml, where anchors can drift into near-collinear clusters
+    # and tags leave their hull (mirror ambiguities by construction).
+    anchor_motion: MotionConfig = field(default_factory=lambda: MotionConfig(model="patrol"))
+    tag_motion: MotionConfig = field(default_factory=lambda: MotionConfig(model="inside_hull"))
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
     ranging: RangingConfig = field(default_factory=RangingConfig)
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
@@ -309,7 +320,7 @@ class SimConfig(ConfigBase):
 
 
 TRIGGERS = ("any", "majority", "all")
-ACTION_MODES = ("calibrate", "calibrate_and_move")
+ACTION_MODES = ("calibrate", "calibrate_and_move", "per_anchor")
 TAG_FALLBACKS = ("hold", "predict")
 
 

@@ -7,6 +7,10 @@ from functools import lru_cache
 
 import numpy as np
 
+# A bias-corrected range can dip below zero next to an anchor (noise around a true ~0 m): that
+# is a measurement. Far below zero it cannot be the corrected range of a real distance.
+NEGATIVE_RANGE_TOLERANCE_M = 1.0
+
 
 @lru_cache(maxsize=64)
 def _pair_index(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -32,6 +36,38 @@ class RangeMatrix:
     mean_m: np.ndarray
     std_m: np.ndarray
     count: np.ndarray
+
+    def __post_init__(self):
+        # Validated once here, so every consumer (solver, recorder, features) can trust it.
+        from uwb_env.localization.errors import InvalidRangeError  # localization imports this module
+
+        mean = np.asarray(self.mean_m, dtype=float)
+        std = np.asarray(self.std_m, dtype=float)
+        count = np.asarray(self.count)
+        if mean.ndim != 2 or mean.shape[0] != mean.shape[1] or mean.shape[0] < 1:
+            raise InvalidRangeError(f"RangeMatrix.mean_m: expected a square (n, n) matrix, got shape {mean.shape}")
+        for name, array in (("std_m", std), ("count", count)):
+            if array.shape != mean.shape:
+                raise InvalidRangeError(f"RangeMatrix.{name}: shape {array.shape} does not match mean_m's {mean.shape}")
+        if count.dtype.kind not in "iu":
+            if count.dtype.kind not in "fb" or not np.all(np.isfinite(count)) or np.any(count != np.round(count)):
+                raise InvalidRangeError("RangeMatrix.count: expected whole numbers of exchanges")
+            count = count.astype(np.int64)
+        if count.size and count.min() < 0:
+            i, j = np.argwhere(count < 0)[0]
+            raise InvalidRangeError(f"RangeMatrix.count[{i}, {j}] = {count[i, j]}: negative")
+        measured = count > 0
+        bad_mean = measured & ~np.isfinite(mean)
+        if bad_mean.any():
+            i, j = np.argwhere(bad_mean)[0]
+            raise InvalidRangeError(f"RangeMatrix.mean_m[{i}, {j}] = {mean[i, j]!r} with count {count[i, j]}: not finite")
+        bad_std = measured & ~(std >= 0) | (measured & np.isinf(std))
+        if bad_std.any():
+            i, j = np.argwhere(bad_std)[0]
+            raise InvalidRangeError(f"RangeMatrix.std_m[{i}, {j}] = {std[i, j]!r}: must be finite and >= 0")
+        object.__setattr__(self, "mean_m", mean)
+        object.__setattr__(self, "std_m", std)
+        object.__setattr__(self, "count", count)
 
     @property
     def n_anchors(self) -> int:
@@ -63,8 +99,9 @@ class RangeMatrix:
         mean_flat, count_flat = self.mean_m.ravel(), self.count.ravel()
         ma, mb = mean_flat.take(upper), mean_flat.take(lower)
         ca, cb = count_flat.take(upper), count_flat.take(lower)
-        # NaN propagates through minimum and fails ">= 0"; inf fails "< inf"
-        if not (np.minimum(ca, cb).min() > 0 and np.minimum(ma, mb).min() >= 0 and np.maximum(ma, mb).max() < np.inf):
+        # NaN propagates through minimum and fails ">= -tol"; inf fails "< inf"
+        if not (np.minimum(ca, cb).min() > 0 and np.minimum(ma, mb).min() >= -NEGATIVE_RANGE_TOLERANCE_M
+                and np.maximum(ma, mb).max() < np.inf):
             return None
         if std_m is not None:
             info_a, info_b = ca / std_m**2, cb / std_m**2
@@ -121,3 +158,21 @@ class RangeMatrix:
         mean[count == 0] = np.nan
         std[count == 0] = np.nan
         return RangeMatrix(mean.reshape(n, n), std.reshape(n, n), count.reshape(n, n).astype(int))
+
+
+def pool_rounds(a: RangeMatrix, b: RangeMatrix) -> RangeMatrix:
+    """Two rounds of the same anchors as one: per ordered pair, counts add, means are count-
+    weighted and the std is the pooled sample std of all exchanges."""
+    if a.mean_m.shape != b.mean_m.shape:
+        from uwb_env.localization.errors import InvalidRangeError
+
+        raise InvalidRangeError(f"pool_rounds: shapes {a.mean_m.shape} and {b.mean_m.shape} differ")
+    ca, cb = a.count.astype(float), b.count.astype(float)
+    count = ca + cb
+    ma, mb = np.where(ca > 0, a.mean_m, 0.0), np.where(cb > 0, b.mean_m, 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mean = np.where(count > 0, (ca * ma + cb * mb) / count, np.nan)
+        sa, sb = np.where(ca > 0, np.nan_to_num(a.std_m), 0.0), np.where(cb > 0, np.nan_to_num(b.std_m), 0.0)
+        ss = np.maximum(ca - 1, 0) * sa**2 + np.maximum(cb - 1, 0) * sb**2 + ca * (ma - mean) ** 2 + cb * (mb - mean) ** 2
+        std = np.where(count > 0, np.sqrt(ss / np.maximum(count - 1, 1)), np.nan)
+    return RangeMatrix(mean, std, count.astype(int))

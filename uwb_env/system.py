@@ -22,6 +22,8 @@ import numpy as np
 from uwb_env.config import EnvConfig
 from uwb_env.localization import LocalizationError, calibrate_anchors, locate_tags, rigid_align
 from uwb_env.localization.multilateration import refit_stuck_tags, track_tags_2d
+from uwb_env.localization.relocation import relocate_anchor
+from uwb_env.measurements import pool_rounds
 from uwb_env.sim import RangeModel, World
 
 OBS_FIELDS = (
@@ -45,6 +47,8 @@ class StepReport:
     requests_ignored: int
     calibrating_fraction: float
     calibration_failed: str | None = None
+    # -1 for a team round (or none); the re-locating anchor's index for a per-anchor round
+    round_anchor: int = -1
 
 
 # ndarray.sum goes through a Python wrapper; on the few-element arrays of one env step the
@@ -82,6 +86,7 @@ class LocalizationSystem:
         # Per-step caches are keyed by step and calibration counts, which repeat across episodes.
         self._cache_stamp = self._transform_key = None
         self.calibration_count = 0
+        self.anchor_round_count = 0
         self.time_calibrating_s = 0.0
         self.time_since_calibration_s = np.zeros(n)
         self.distance_since_calibration_m = np.zeros(n)
@@ -98,11 +103,7 @@ class LocalizationSystem:
         self._hist_index = 0
         self.last_round_links: np.ndarray | None = None
         true_start, est_start = self.world.anchors_true.copy(), self.world.anchors_est.copy()
-        matrix, _ = self.world.run_calibration_round()
-        result = calibrate_anchors(
-            self.world.round_correction.correct_matrix(matrix), dim=dim, loss=cfg.solver.loss,
-            f_scale=cfg.solver.f_scale_sigmas, range_std_m=self.range_std_m,
-        )
+        result = self._first_calibration()
         # The solution describes the robots around the round's midpoint; the solver's frame
         # becomes the estimate frame: est = R (world - origin).
         if self.ground_truth:
@@ -115,22 +116,59 @@ class LocalizationSystem:
         self._apply_calibration(result, odometry_since_mid)
         self._fix_tags()
 
-    def step(self, requests: np.ndarray, move_commands: np.ndarray | None = None) -> StepReport:
+    # Rounds the first calibration may take: each extra round adds its exchanges to the pool.
+    FIRST_CALIBRATION_MAX_ROUNDS = 6
+
+    def _first_calibration(self):
+        """The paper's first calibration, run before the episode starts.
+
+        A single round can fail to fix the frame (dropouts disconnect the range graph, or in 3D
+        anchors on robots of similar height leave noisy ranges without a 3D embedding). A team
+        would simply keep ranging: each further round is pooled with the earlier ones (more
+        exchanges per pair, less noise) until the shape is determined.
+        """
+        cfg, pooled = self.config, None
+        for attempt in range(self.FIRST_CALIBRATION_MAX_ROUNDS):
+            matrix, _ = self.world.run_calibration_round()
+            pooled = matrix if pooled is None else pool_rounds(pooled, matrix)
+            try:
+                return calibrate_anchors(
+                    self.world.round_correction.correct_matrix(pooled), dim=self.dim, loss=cfg.solver.loss,
+                    f_scale=cfg.solver.f_scale_sigmas, range_std_m=self.range_std_m,
+                )
+            except LocalizationError as err:
+                last = err
+        raise type(last)(f"first calibration failed after {self.FIRST_CALIBRATION_MAX_ROUNDS} pooled rounds: {last}")
+
+    def step(self, requests: np.ndarray, move_commands: np.ndarray | None = None,
+             anchor_requests: np.ndarray | None = None) -> StepReport:
         """Advance one ``dt_s``.
 
         Args:
-            requests: (n_anchors,) bool, each anchor's calibration request.
+            requests: (n_anchors,) bool, each anchor's request for a team round.
             move_commands: optional (n_anchors, 2) [heading_rad, speed_mps] overrides.
+            anchor_requests: optional (n_anchors,) bool, "re-locate me" (a per-anchor round). A
+                triggered team round wins; otherwise the requester with the largest predicted
+                error gets the channel (one round at a time).
         """
         world, dt = self.world, self.world.dt_s
         if move_commands is not None:
             self.world.motion.command(np.arange(self.n_anchors), move_commands[:, 0], move_commands[:, 1])
         running = world.round is not None
-        ignored = int(np.count_nonzero(requests)) if running else 0
+        asked = int(np.count_nonzero(requests)) + (int(np.count_nonzero(anchor_requests))
+                                                   if anchor_requests is not None else 0)
+        ignored = asked if running else 0
         started = (not running) and self._triggered(requests)
+        round_anchor = -1
         if started:
             world.start_calibration_round()
             self._est_at_round_start = world.anchors_est.copy()
+        elif not running and anchor_requests is not None and anchor_requests.any():
+            var = np.where(anchor_requests, self.predicted_anchor_var_m2(), -np.inf)
+            round_anchor = int(np.argmax(var))
+            world.start_calibration_round(initiators=[round_anchor])
+            self._est_at_round_start = world.anchors_est.copy()
+            started = True
         t0 = world.time_s
         before = world.anchors_est.copy()
         world.step()
@@ -138,7 +176,7 @@ class LocalizationSystem:
         self.distance_since_calibration_m += np.sqrt(_sum(delta * delta, 1))
         self.steps_since_calibration += 1
         self.time_since_calibration_s += dt
-        report = StepReport(started, False, ignored, 0.0)
+        report = StepReport(started, False, ignored, 0.0, round_anchor=round_anchor)
         if world.round is not None:
             rnd = world.round
             busy_until = min(rnd.end_time_s, world.time_s)
@@ -166,6 +204,8 @@ class LocalizationSystem:
 
     def _finish_round(self) -> str | None:
         finished = self.world.finish_calibration_round()
+        if getattr(finished, "initiators", None) is not None:
+            return self._finish_anchor_round(finished)
         solver = self.config.solver
         # Motion compensation: the ranges were taken while the robots moved, so the solution
         # describes them around the round's midpoint. Solve against the mid-round estimates and
@@ -176,11 +216,45 @@ class LocalizationSystem:
             result = calibrate_anchors(
                 self.world.round_correction.correct_matrix(matrix), dim=self.dim, prior=est_mid, gauge=solver.gauge,
                 loss=solver.loss, f_scale=solver.f_scale_sigmas, range_std_m=self.range_std_m,
+                prior_std_m=np.sqrt(np.maximum(self.predicted_anchor_var_m2(), self.range_std_m**2)),
             )
         except LocalizationError as err:  # e.g. dropouts disconnected the graph: keep odometry
             return f"{type(err).__name__}: {err}"
         self._apply_calibration(result, self.world.anchors_est - est_mid)
         return None
+
+    def _finish_anchor_round(self, finished) -> str | None:
+        """One anchor re-located against the others (their estimates and covariances as known up
+        to that covariance, its own odometry as the prior); the others keep their estimates."""
+        (i,) = finished.initiators
+        others = np.flatnonzero(np.arange(self.n_anchors) != i)
+        est_mid = 0.5 * (self._est_at_round_start + self.world.anchors_est)
+        cov = self._predicted_covariance()
+        try:
+            matrix = self.world.round_correction.correct_matrix(finished.result())
+            count = matrix.count[i, others]
+            ranges = np.where(count > 0, matrix.mean_m[i, others], np.nan)
+            res = relocate_anchor(ranges, est_mid[others], self.range_std_m**2 / np.maximum(count, 1),
+                                  others_covariance=cov[others], prior=est_mid[i], prior_covariance=cov[i])
+        except LocalizationError as err:
+            return f"{type(err).__name__}: {err}"
+        if not res.ok:  # a mirror fix or a fit the noise cannot explain: keep odometry, say why
+            return f"anchor {i} relocation {res.status} (chi2 {res.chi2:.1f} on {res.dof} dof)"
+        self.world.anchors_est[i] = res.position + (self.world.anchors_est[i] - est_mid[i])
+        self.anchor_cov[i] = res.covariance
+        self.calibration_var_m2[i] = float(np.trace(res.covariance))
+        self.anchor_round_count += 1
+        self.time_since_calibration_s[i] = 0.0
+        self.distance_since_calibration_m[i] = 0.0
+        self.steps_since_calibration[i] = 0
+        return None
+
+    def _predicted_covariance(self) -> np.ndarray:
+        """(n, dim, dim): the last calibration's covariance plus the drift model's (isotropic),
+        floored at one range std so that a fresh anchor is never taken as exact."""
+        pred = self.predicted_anchor_var_m2()
+        drift = np.maximum(pred - self.calibration_var_m2, 0.0) / self.dim + self.range_std_m**2
+        return self.anchor_cov + drift[:, None, None] * self._eye
 
     def _apply_calibration(self, result, odometry_since_mid: np.ndarray) -> None:
         self.world.anchors_est = result.positions + odometry_since_mid
@@ -375,7 +449,7 @@ class LocalizationSystem:
 
     def _cached(self, key, compute):
         # Metrics are read several times per step (reward, infos): compute each once per step.
-        stamp = (self.world.step_count, self.calibration_count)
+        stamp = (self.world.step_count, self.calibration_count, self.anchor_round_count)
         if getattr(self, "_cache_stamp", None) != stamp:
             self._cache_stamp, self._cache = stamp, {}
         if key not in self._cache:

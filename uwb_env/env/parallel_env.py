@@ -14,6 +14,12 @@ tags keep their last fix. The agents decide *when* to calibrate.
 ``calibrate`` mode (default): ``Discrete(2)``: 0 = no request, 1 = request a calibration. The
 ``trigger`` rule turns requests into a round: ``any`` (default), ``majority`` or ``all``.
 Requests while a round runs are ignored and counted in ``infos["requests_ignored"]``.
+``per_anchor`` mode: ``Discrete(3)``: 0 = nothing, 1 = re-locate me (a per-anchor round: this
+anchor ranges to the others, 1/n of a team round's channel time, and solves its own position
+with theirs and their covariances as known and its odometry as the prior), 2 = request a team
+round (``trigger`` rule as above). A triggered team round wins; otherwise the requesting anchor
+with the largest predicted error gets the channel. ``infos["round_anchor"]`` names the anchor of
+a per-anchor round that started (-1 otherwise).
 ``calibrate_and_move`` mode: ``Discrete(2 * (H + 1))``: ``a // (H + 1)`` is the request bit,
 ``a % (H + 1)`` picks one of H headings (at ``move_speed_mps``) or H = stop; this replaces
 the scripted motion of the anchors.
@@ -112,7 +118,7 @@ class UWBCalibrationParallelEnv(ParallelEnv, EzPickle):
         low, high = self.system.feature_bounds()
         obs_space = spaces.Box(low, high, dtype=np.float32)
         heads = self.config.move_headings
-        n_actions = 2 if self.config.action_mode == "calibrate" else 2 * (heads + 1)
+        n_actions = {"calibrate": 2, "per_anchor": 3}.get(self.config.action_mode, 2 * (heads + 1))
         act_space = spaces.Discrete(n_actions)
         self.observation_spaces = {a: obs_space for a in self.possible_agents}
         self.action_spaces = {a: act_space for a in self.possible_agents}
@@ -157,7 +163,10 @@ class UWBCalibrationParallelEnv(ParallelEnv, EzPickle):
         if not self.agents:
             raise RuntimeError("step() called on a finished episode: call reset() first")
         requests, moves = self._decode(actions)
-        report = self.system.step(requests, moves)
+        if self.config.action_mode == "per_anchor":
+            report = self.system.step(requests == 2, None, requests == 1)
+        else:
+            report = self.system.step(requests, moves)
         self.num_steps += 1
         terms = self.system.reward_terms(report)
         reward = float(sum(terms.values()))
@@ -208,6 +217,8 @@ class UWBCalibrationParallelEnv(ParallelEnv, EzPickle):
                 values[i] = act
         if self.config.action_mode == "calibrate":
             return values == 1, None
+        if self.config.action_mode == "per_anchor":
+            return values, None
         per = self.config.move_headings + 1
         requests, move = values // per == 1, values % per
         stop = move == self.config.move_headings
@@ -241,6 +252,8 @@ class UWBCalibrationParallelEnv(ParallelEnv, EzPickle):
             "round_finished": bool(report.round_finished) if report else False,
             "calibration_failed": report.calibration_failed if report else None,
             "requests_ignored": report.requests_ignored if report else 0,
+            "round_anchor": report.round_anchor if report else -1,
+            "anchor_round_count": s.anchor_round_count,
             "reward_terms": terms,
             # False on hardware: the truth-based keys above are NaN and the reward's tag and
             # anchor terms are the residual proxy (see LocalizationSystem.reward_terms).

@@ -15,6 +15,7 @@ from uwb_env.localization.errors import (
 )
 from uwb_env.localization.models import PairRangeModel, TagRangeModel
 from uwb_env.localization.multilateration import TagFixResult, locate_tags
+from uwb_env.localization.relocation import RelocationResult, relocate_anchor
 
 __all__ = [
     "CalibrationResult",
@@ -23,6 +24,7 @@ __all__ = [
     "InvalidRangeError",
     "LocalizationError",
     "PairRangeModel",
+    "RelocationResult",
     "TagFixResult",
     "TagRangeModel",
     "TooFewAnchorsError",
@@ -34,5 +36,6 @@ __all__ = [
     "crlb_tags",
     "locate_tags",
     "paper_frame",
+    "relocate_anchor",
     "rigid_align",
 ]

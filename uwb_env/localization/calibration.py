@@ -21,6 +21,19 @@ then placed in the running frame:
 
 The reported covariance is (J^T W J)^-1 in the internal gauge, rotated into the output frame:
 it is the uncertainty of the shape with the gauge (anchor 0, the x axis) held fixed.
+
+Right when it says so. Range-only least squares has folded local minima (an anchor mirrored
+across a line through others), which a single start can fall into, most often on thin or
+near-collinear layouts and with missing pairs. So every solve ends with a goodness-of-fit test
+(chi-square of the whitened residuals against the degrees of freedom); the first calibration
+always, and a later one whose fit fails, are solved from several starts (trilateration,
+classical MDS, SMACOF on the measured pairs only, the prior) and, while the fit still fails,
+from single-anchor reflections of the best solution; the lowest cost wins. ``converged`` is True
+only when the optimizer converged *and* the fit is explained by the noise (``status``).
+
+Weights: by default each pair's variance is the range model's sigma^2 / K (K = exchanges that
+arrived): the sample std of K = 5 ranges is itself noisy, and weighting by it makes the
+estimate worse than the bound and its covariance too small (``weighting="sample"`` keeps it).
 """
 
 from __future__ import annotations
@@ -30,20 +43,32 @@ from functools import lru_cache
 
 import numpy as np
 from scipy.sparse.csgraph import shortest_path
+from scipy.special import chdtrc, chdtri
 
 from uwb_env.localization.alignment import frame_refs, paper_frame, rigid_align
 from uwb_env.localization.errors import (
     DisconnectedGraphError,
     GeometryError,
     InvalidRangeError,
+    SolverArgumentError,
     TooFewAnchorsError,
 )
 from uwb_env.localization.pair_solver import PairStructure, pair_structure, solve_pair_ranges
 from uwb_env.localization.robust import check_loss
-from uwb_env.measurements import RangeMatrix, _pair_index
+from uwb_env.measurements import NEGATIVE_RANGE_TOLERANCE_M, RangeMatrix, _pair_index
 
 GAUGES = ("anchor0", "prior")
 INITIALIZERS = ("auto", "trilateration", "mds")
+WEIGHTINGS = ("model", "sample")
+STATUSES = ("ok", "poor_fit", "not_converged")
+
+
+@lru_cache(maxsize=1)
+def default_range_std_m() -> float:
+    """Std of one bias-corrected range of the fitted DWM1001 model (the default weights)."""
+    from uwb_env.sim.ranging import RangeModel  # the fit to the paper's measured data
+
+    return float(RangeModel().corrected_noise_std_m)
 
 
 @dataclass
@@ -59,6 +84,18 @@ class CalibrationResult:
         initializer: "trilateration", "mds", "prior", or "prior+trilateration" / "prior+mds"
             when the prior's solution was replaced by a restart from the ranges alone.
         gauge_refs: anchors fixing the internal gauge (origin, +x, +y[, +z]).
+        chi2, dof, fit_p_value: goodness of fit: sum of squared whitened residuals over the
+            pairs kept, its degrees of freedom (pairs - free coordinates) and the chi-square
+            upper-tail probability (1.0 when dof = 0: nothing to test).
+        status: ``ok``; ``poor_fit`` (converged, but the residuals are larger than the noise
+            explains at ``fit_alpha``: a folded shape, outliers or a wrong noise model);
+            ``not_converged`` (iteration limit or no decrease).
+        optimizer_converged: the optimizer's own verdict, whatever the fit.
+        rejected_pairs: (R, 2) pairs left out as outliers (robust mode), empty otherwise.
+        starts_tried: number of starts solved.
+        ambiguous: another shape, clearly different, fits the ranges as well (within the fit
+            test's margin): with a prior the one closest to it was taken, but the ranges alone
+            do not decide (e.g. a quadrilateral with a missing diagonal, a near-collinear team).
     """
 
     positions: np.ndarray
@@ -73,6 +110,22 @@ class CalibrationResult:
     message: str
     initializer: str
     gauge_refs: tuple[int, ...]
+    chi2: float = 0.0
+    dof: int = 0
+    fit_p_value: float = 1.0
+    status: str = "ok"
+    optimizer_converged: bool = True
+    rejected_pairs: np.ndarray = None  # type: ignore[assignment]
+    starts_tried: int = 1
+    ambiguous: bool = False
+
+    def __post_init__(self):
+        if self.rejected_pairs is None:
+            self.rejected_pairs = np.zeros((0, 2), dtype=int)
+
+    @property
+    def fit_ok(self) -> bool:
+        return self.status == "ok"
 
     @property
     def n_anchors(self) -> int:
@@ -106,41 +159,55 @@ def calibrate_anchors(
     loss: str = "linear",
     f_scale: float = 2.0,
     range_std_m: float | None = None,
+    weighting: str = "model",
     min_range_std_m: float = 0.03,
     initializer: str = "auto",
     max_iterations: int = 50,
     restart_sigmas: float = 8.0,
+    fit_alpha: float = 1e-3,
+    reject_outliers: bool | None = None,
+    prior_std_m: float | np.ndarray | None = None,
 ) -> CalibrationResult:
     """Estimate all anchor positions from a calibration round.
 
     Args:
         ranges: bias-corrected :class:`RangeMatrix` (per ordered pair mean/std/count), or an
             (n, n) matrix of ranges (NaN = missing): one range per unordered pair, the two
-            directions averaged when both are given, with std ``range_std_m``.
+            directions averaged when both are given, each with std ``range_std_m``.
         dim: 2 or 3.
         prior: (n, dim) current on-board estimates; ``None`` for the first calibration.
         gauge: how a later calibration is placed in the running frame (module docstring).
         loss: ``linear``, ``huber``, ``soft_l1`` or ``cauchy`` (robust to NLOS outliers).
         f_scale: robust-loss scale in units of the range std (2 = start down-weighting at 2 sigma).
-        range_std_m: known per-range std; if given it replaces the per-pair sample std.
-        min_range_std_m: floor on the per-pair std (a std from K=5 samples can be ~0).
-        initializer: ``auto`` (trilateration, MDS fallback), ``trilateration`` or ``mds``.
-        max_iterations: Gauss-Newton / Levenberg-Marquardt iterations (``pair_solver``).
-        restart_sigmas: with a prior, a residual above this many range stds triggers a second
-            solve from the ranges alone (trilateration/MDS); the lower cost wins.
+        range_std_m: std of one range; default: the fitted DWM1001 model's (``default_range_std_m``).
+        weighting: ``model`` (default): a pair's variance is range_std_m^2 / K; ``sample``: the
+            pair's sample std (floored at ``min_range_std_m``) squared over K.
+        min_range_std_m: floor on the sample std (``weighting="sample"``).
+        initializer: ``auto`` (every start, lowest cost), ``trilateration`` or ``mds`` (that start
+            first; the others still run when its fit fails).
+        max_iterations: Gauss-Newton / Levenberg-Marquardt iterations per start (``pair_solver``).
+        restart_sigmas: with a prior, a whitened residual above this also triggers the restarts.
+        fit_alpha: significance of the chi-square fit test (``status``).
+        reject_outliers: drop pairs whose residual the noise cannot explain, one at a time, while
+            the shape stays rigid (``rejected_pairs``). Default: on for robust losses.
+        prior_std_m: scalar or (n,) std of each prior position's error (sqrt of the trace of its
+            covariance). When several starts give different shapes, the one with the lowest
+            chi-square of ranges *plus* prior (after rigid alignment to the prior) wins: with few
+            pairs an NLOS outlier can make a fold fit the ranges better than the true shape, and
+            a prior known to 10 cm rules out a shape 60 cm away. Without it, the ranges decide.
 
     Raises:
-        TooFewAnchorsError, InvalidRangeError, DisconnectedGraphError, GeometryError,
-        ValueError (bad arguments).
+        TooFewAnchorsError, InvalidRangeError, DisconnectedGraphError, GeometryError (all
+        LocalizationError); SolverArgumentError for arguments out of their domain.
     """
     check_loss(loss)
-    if gauge not in GAUGES:
-        raise ValueError(f"gauge={gauge!r}: must be one of {GAUGES}")
-    if initializer not in INITIALIZERS:
-        raise ValueError(f"initializer={initializer!r}: must be one of {INITIALIZERS}")
-    if dim not in (2, 3):
-        raise ValueError(f"dim={dim!r}: must be 2 or 3")
-    pairs, dist, var, n = _pair_data(ranges, range_std_m, min_range_std_m)
+    _check_arguments(gauge, initializer, dim, weighting, f_scale, max_iterations, restart_sigmas, fit_alpha,
+                     min_range_std_m, range_std_m)
+    if range_std_m is None and weighting == "model":
+        range_std_m = default_range_std_m()
+    if reject_outliers is None:
+        reject_outliers = loss != "linear"
+    pairs, dist, var, n = _pair_data(ranges, range_std_m if weighting == "model" else None, min_range_std_m)
     if n < dim + 1:
         raise TooFewAnchorsError(f"{n} anchors: a {dim}D calibration needs at least {dim + 1}")
     if len(pairs) < n * (n - 1) // 2:
@@ -148,48 +215,239 @@ def calibrate_anchors(
     if prior is not None:
         prior = np.asarray(prior, dtype=float)
         if prior.shape != (n, dim) or not np.isfinite(prior).all():
-            raise ValueError(f"prior: expected finite ({n}, {dim}) positions, got shape {prior.shape}")
+            raise InvalidRangeError(f"prior: expected finite ({n}, {dim}) positions, got shape {prior.shape}")
 
+    problem = _Problem(pairs, dist, var, n, dim, loss, f_scale, max_iterations, fit_alpha)
     if prior is None:
-        x0, init_name = _initial_positions(pairs, dist, n, dim, initializer)
-        if dim == 2 and init_name == "trilateration":
-            # Trilateration already places anchor 0 at the origin and anchor 1 on +x: that is
-            # the internal gauge, up to the mirror image the final sign rule settles.
-            refs, x0_gauge = (0, 1), x0
-        else:
-            refs = frame_refs(x0)
-            rot0, trans0 = paper_frame(x0, refs)
-            x0_gauge = x0 @ rot0.T + trans0
+        starts = _cold_starts(problem, initializer)
+        if not starts:
+            raise GeometryError(f"no start: anchors span fewer than {dim} dimensions (collinear or coplanar)")
+        refs = _refs_for(starts[0][0], starts[0][1], dim)
+        # the first calibration is rare: try every start
+        candidates = problem.solve_starts(refs, starts)
+        if not candidates:
+            raise GeometryError("no start fixes the frame: anchors collinear (coplanar in 3D)")
     else:
         refs = _gauge_refs(prior)
-        x0, init_name = prior, "prior"
-        rot0, trans0 = paper_frame(prior, refs)
-        x0_gauge = x0 @ rot0.T + trans0
+        candidates = [problem.solve(refs, prior, "prior")]
+        if not candidates[0].fit_ok or candidates[0].max_z > restart_sigmas:
+            # A prior far off (long drift) can sit in the basin of a folded shape (one anchor
+            # mirrored across a line through two others). Restart from the ranges alone.
+            candidates += problem.solve_starts(refs, [("prior+" + name, x) for name, x in _cold_starts(problem, "auto")])
+    if prior is not None and prior_std_m is not None:
+        std = np.broadcast_to(np.asarray(prior_std_m, dtype=float), (n,))
+        if not np.all(np.isfinite(std) & (std > 0)):
+            raise SolverArgumentError(f"prior_std_m={prior_std_m!r}: must be finite and > 0 for every anchor")
+        problem.prior, problem.prior_weight = prior, dim / std**2
+    best, ambiguous = problem.select(candidates, prior)
+    tried = len(candidates)
+    if not best.fit_ok:
+        best, extra = problem.unfold(refs, best)
+        tried += extra
+    if reject_outliers and not best.fit_ok:
+        best = problem.reject_outliers(refs, best)
+    return _finish(problem, best, refs, prior, gauge, tried, ambiguous)
 
-    structure = _structure(pairs, n, dim, refs)
-    inv_var = 1.0 / var
 
-    def solve(start_gauge: np.ndarray):
-        if loss != "linear":
+def _cost(candidate) -> float:
+    return candidate.cost if np.isfinite(candidate.cost) else np.inf
+
+
+def _check_arguments(gauge, initializer, dim, weighting, f_scale, max_iterations, restart_sigmas, fit_alpha,
+                     min_range_std_m, range_std_m):
+    if gauge not in GAUGES:
+        raise SolverArgumentError(f"gauge={gauge!r}: must be one of {GAUGES}")
+    if initializer not in INITIALIZERS:
+        raise SolverArgumentError(f"initializer={initializer!r}: must be one of {INITIALIZERS}")
+    if dim not in (2, 3):
+        raise SolverArgumentError(f"dim={dim!r}: must be 2 or 3")
+    if weighting not in WEIGHTINGS:
+        raise SolverArgumentError(f"weighting={weighting!r}: must be one of {WEIGHTINGS}")
+    if not (isinstance(f_scale, int | float | np.number) and np.isfinite(f_scale) and f_scale > 0):
+        raise SolverArgumentError(f"f_scale={f_scale!r}: must be a finite number > 0")
+    if not (isinstance(restart_sigmas, int | float | np.number) and restart_sigmas > 0):  # inf: never
+        raise SolverArgumentError(f"restart_sigmas={restart_sigmas!r}: must be a number > 0")
+    if not (isinstance(max_iterations, int | np.integer) and not isinstance(max_iterations, bool)
+            and max_iterations >= 1):
+        raise SolverArgumentError(f"max_iterations={max_iterations!r}: must be an integer >= 1")
+    if not (isinstance(fit_alpha, int | float | np.number) and 0 < fit_alpha < 1):
+        raise SolverArgumentError(f"fit_alpha={fit_alpha!r}: must be in (0, 1)")
+    if weighting == "sample" and not (np.isfinite(min_range_std_m) and min_range_std_m > 0):
+        raise SolverArgumentError(f"min_range_std_m={min_range_std_m!r}: must be a finite number > 0")
+    if range_std_m is not None and not (isinstance(range_std_m, int | float | np.number)
+                                        and np.isfinite(range_std_m) and range_std_m > 0):
+        raise SolverArgumentError(f"range_std_m={range_std_m!r}: must be a finite number > 0")
+
+
+@dataclass
+class _Candidate:
+    """One solve in the internal gauge, with its fit verdict."""
+
+    x: np.ndarray
+    out: object  # PairSolution
+    keep: np.ndarray  # (P,) bool: pairs used
+    name: str
+    chi2: float
+    dof: int
+    p_value: float
+    fit_ok: bool
+    max_z: float
+
+    @property
+    def cost(self) -> float:
+        return self.out.cost
+
+
+class _Problem:
+    """The data of one calibration and the solves on it (several starts share it)."""
+
+    def __init__(self, pairs, dist, var, n, dim, loss, f_scale, max_iterations, fit_alpha):
+        self.pairs, self.dist, self.var, self.n, self.dim = pairs, dist, var, n, dim
+        self.inv_var = 1.0 / var
+        self.loss, self.f_scale, self.max_iterations, self.fit_alpha = loss, f_scale, max_iterations, fit_alpha
+        self._full = None
+        self.prior = self.prior_weight = None  # set when the prior's uncertainty is known
+
+    def score(self, cand: _Candidate) -> float:
+        """What the starts compete on: the cost, plus the prior's chi-square when it is known."""
+        if self.prior is None:
+            return _cost(cand)
+        rot, trans = rigid_align(cand.x, self.prior, allow_reflection=True)
+        d2 = ((cand.x @ rot.T + trans - self.prior) ** 2).sum(1)
+        return _cost(cand) + 0.5 * float(d2 @ self.prior_weight)
+
+    @property
+    def full(self) -> np.ndarray:
+        if self._full is None:
+            self._full = _full_matrix(self.pairs, self.dist, self.n)
+        return self._full
+
+    def solve(self, refs, start, name, keep=None) -> _Candidate:
+        n, dim = self.n, self.dim
+        if keep is None:
+            keep = np.ones(len(self.pairs), dtype=bool)
+            pairs, dist, inv_var = self.pairs, self.dist, self.inv_var
+        else:
+            pairs, dist, inv_var = self.pairs[keep], self.dist[keep], self.inv_var[keep]
+        rot0, trans0 = paper_frame(start, refs) if not _in_gauge(start, refs) else (None, None)
+        x0 = start if rot0 is None else start @ rot0.T + trans0
+        structure = _structure(pairs, n, dim, refs) if keep.all() else pair_structure(
+            pairs, n, dim, _free_mask(n, dim, refs))
+        if self.loss != "linear":
             # Robust losses are non-convex: start them from the plain least-squares solution so
-            # an outlier-corrupted initial guess does not trap them in a wrong minimum.
-            start_gauge = solve_pair_ranges(structure, start_gauge, dist, inv_var, "linear", 1.0,
-                                            max_iterations).positions
-        return solve_pair_ranges(structure, start_gauge, dist, inv_var, loss, f_scale, max_iterations)
+            # an outlier-corrupted start does not trap them in a wrong minimum.
+            x0 = solve_pair_ranges(structure, x0, dist, inv_var, "linear", 1.0, self.max_iterations).positions
+        out = solve_pair_ranges(structure, x0, dist, inv_var, self.loss, self.f_scale, self.max_iterations)
+        z = out.residuals * np.sqrt(inv_var)
+        chi2 = float(z @ z) if np.all(np.isfinite(z)) else np.inf
+        dof = len(dist) - structure.n_free
+        p_value = float(chdtrc(dof, chi2)) if dof > 0 else 1.0
+        fit_ok = bool(out.converged and (dof <= 0 or p_value >= self.fit_alpha))
+        return _Candidate(out.positions, out, keep, name, chi2, dof, p_value, fit_ok, float(np.abs(z).max()))
 
-    out = solve(x0_gauge)
-    if prior is not None and float(np.max(np.abs(out.residuals) * np.sqrt(inv_var))) > restart_sigmas:
-        # A prior far off (long drift) can sit in the basin of a folded shape (one anchor
-        # mirrored across a line through two others): the residuals then stay metres large.
-        # Restart from the ranges alone, in the same gauge, and keep the lower cost.
-        cold, cold_name = _initial_positions(pairs, dist, n, dim, "auto")
-        rot_c, trans_c = paper_frame(cold, refs)
-        out_cold = solve(cold @ rot_c.T + trans_c)
-        if out_cold.cost < out.cost:
-            out, init_name = out_cold, "prior+" + cold_name
-    x_gauge = out.positions
+    def solve_starts(self, refs, starts) -> list[_Candidate]:
+        out = []
+        for name, start in starts:
+            try:
+                out.append(self.solve(refs, start, name))
+            except GeometryError:  # this start cannot be put in the gauge (degenerate): skip it
+                continue
+        return out
+
+    def select(self, candidates: list[_Candidate], prior) -> tuple[_Candidate, bool]:
+        """The lowest cost, unless the ranges cannot tell it from another shape: candidates whose
+        chi-square lies within the fit test's one-dof margin of the lowest are indistinguishable
+        (e.g. the two folds of a quadrilateral with a missing diagonal). Then the prior decides
+        (the closest after rigid alignment); without a prior the result is flagged ambiguous."""
+        best = min(candidates, key=_cost)
+        if len(candidates) == 1 or not np.isfinite(best.chi2):
+            return best, False
+        if self.prior is not None:
+            pick = min(candidates, key=self.score)
+            tol = 3.0 * float(np.sqrt(self.var.max()))
+            # ambiguous: the ranges alone preferred another shape and the prior overruled them
+            return pick, bool(_shape_distance(pick.x, best.x) > tol and best.chi2 < pick.chi2)
+        margin = float(chdtri(1, self.fit_alpha))
+        tol = 3.0 * float(np.sqrt(self.var.max()))  # shapes closer than this are the same shape
+        near = [c for c in candidates if c.out.converged and c.chi2 - best.chi2 <= margin
+                and _shape_distance(c.x, best.x) > tol]
+        if not near:
+            return best, False
+        if prior is None:
+            return best, True
+        pick = min([best, *near], key=lambda c: _shape_distance(c.x, prior))
+        others = [c for c in [best, *near] if _shape_distance(c.x, pick.x) > tol]
+        # the prior decides only if it is clearly closer to one shape than to the others
+        ambiguous = any(_shape_distance(c.x, prior) < 2.0 * _shape_distance(pick.x, prior) for c in others)
+        return pick, ambiguous
+
+    def unfold(self, refs, best: _Candidate) -> tuple[_Candidate, int]:
+        """Single-anchor reflections of a poorly fitting solution: a fold mirrors an anchor (or a
+        few) across a line (plane) through others; reflecting it back is one start away."""
+        tried = 0
+        for _ in range(2):  # passes: a second fold can hide behind the first
+            improved = False
+            for k in np.argsort(-self._anchor_misfit(best))[: min(self.n, 16)]:
+                start = _reflect_anchor(best.x, int(k))
+                if start is None:
+                    continue
+                cand = self.solve(refs, start, best.name + "+unfold", best.keep)
+                tried += 1
+                if self.score(cand) < self.score(best) - 1e-9:
+                    best, improved = cand, True
+                    if best.fit_ok:
+                        return best, tried
+            if not improved:
+                break
+        return best, tried
+
+    def _anchor_misfit(self, cand: _Candidate) -> np.ndarray:
+        z2 = np.zeros(len(self.pairs))
+        z2[cand.keep] = cand.out.residuals ** 2 * self.inv_var[cand.keep]
+        return np.bincount(self.pairs[:, 0], z2, self.n) + np.bincount(self.pairs[:, 1], z2, self.n)
+
+    def reject_outliers(self, refs, best: _Candidate) -> _Candidate:
+        """Drop the worst pair while the fit fails and the shape stays rigid; re-solve each time.
+
+        A pair is only identifiable as the outlier while the others keep some redundancy: with
+        fewer than two degrees of freedom left, dropping *any* pair fits perfectly, so nothing
+        is dropped and the poor fit is reported instead.
+        """
+        for _ in range(len(self.pairs)):
+            if best.fit_ok or best.dof - 1 < 2:
+                break
+            z = np.zeros(len(self.pairs))
+            z[best.keep] = np.abs(best.out.residuals) * np.sqrt(self.inv_var[best.keep])
+            order = np.argsort(-z)
+            for worst in order[: 3]:
+                if not best.keep[worst]:
+                    continue
+                keep = best.keep.copy()
+                keep[worst] = False
+                if not _connected(self.pairs[keep], self.n):
+                    continue
+                try:
+                    cand = self.solve(refs, best.x, best.name, keep)
+                    cand.out.covariance()  # rigid: the remaining pairs still fix every coordinate
+                except GeometryError:
+                    continue
+                best = cand
+                break
+            else:
+                break
+        return best
+
+
+def _shape_distance(a: np.ndarray, b: np.ndarray) -> float:
+    """Largest anchor distance between two shapes after the best rigid alignment (mirror allowed)."""
+    rot, trans = rigid_align(a, b, allow_reflection=True)
+    return float(np.sqrt(((a @ rot.T + trans - b) ** 2).sum(1)).max())
+
+
+def _finish(problem: _Problem, best: _Candidate, refs, prior, gauge, tried, ambiguous=False) -> CalibrationResult:
+    n, dim = problem.n, problem.dim
+    out, x_gauge = best.out, best.x
     cov_gauge = out.covariance()
-
     if prior is None:
         # Re-apply the frame's sign rules to the solution (only axis flips here): the cost is
         # mirror-invariant, so the optimizer may have crossed to the other side.
@@ -205,20 +463,171 @@ def calibrate_anchors(
         rot, trans = rigid_align(x_gauge, prior, allow_reflection=True, pivot=pivot)
         positions = x_gauge @ rot.T + trans
         covariance = _rotate_covariance(cov_gauge, rot, n, dim)
+    residuals = np.full(len(problem.pairs), np.nan)
+    residuals[best.keep] = out.residuals
+    keep = best.keep
+    if out.converged and best.fit_ok:
+        status = "ok"
+    else:
+        status = "poor_fit" if out.converged else "not_converged"
     return CalibrationResult(
         positions=positions,
         covariance=covariance,
-        pairs=pairs,
-        ranges_m=dist,
+        pairs=problem.pairs[keep] if not keep.all() else problem.pairs,
+        ranges_m=problem.dist[keep] if not keep.all() else problem.dist,
         residuals_m=out.residuals,
-        range_var_m2=var,
+        range_var_m2=problem.var[keep] if not keep.all() else problem.var,
         iterations=out.iterations,
         cost=out.cost,
-        converged=out.converged,
-        message=out.message,
-        initializer=init_name,
+        converged=status == "ok",
+        message=out.message if status != "poor_fit" else
+        f"converged to a poor fit: chi2 {best.chi2:.1f} on {best.dof} dof (p = {best.p_value:.2g})",
+        initializer=best.name,
         gauge_refs=refs,
+        chi2=best.chi2,
+        dof=best.dof,
+        fit_p_value=best.p_value,
+        status=status,
+        optimizer_converged=bool(out.converged),
+        rejected_pairs=problem.pairs[~keep],
+        starts_tried=tried,
+        ambiguous=ambiguous,
     )
+
+
+def _refs_for(name: str, start: np.ndarray, dim: int) -> tuple[int, ...]:
+    if dim == 2 and name == "trilateration":
+        # Trilateration already places anchor 0 at the origin and anchor 1 on +x: that is
+        # the internal gauge, up to the mirror image the final sign rule settles.
+        return (0, 1)
+    return frame_refs(start)
+
+
+def _in_gauge(x: np.ndarray, refs: tuple[int, ...]) -> bool:
+    """True when x already has refs[0] at the origin and refs[1] on the +x axis (2D)."""
+    if len(refs) != 2:
+        return False
+    o, a = x[refs[0]], x[refs[1]]
+    return bool(o[0] == 0.0 and o[1] == 0.0 and a[1] == 0.0 and a[0] > 0.0)
+
+
+def _reflect_anchor(x: np.ndarray, k: int) -> np.ndarray | None:
+    """x with anchor k mirrored across the line (2D) or plane (3D) through its nearest others."""
+    n, dim = x.shape
+    if n <= dim + 1:
+        return None
+    d = np.linalg.norm(x - x[k], axis=1)
+    d[k] = np.inf
+    near = np.argsort(d)[:dim]
+    base = x[near[0]]
+    if dim == 2:
+        t = x[near[1]] - base
+        norm = np.linalg.norm(t)
+        if norm < 1e-9:
+            return None
+        normal = np.array([-t[1], t[0]]) / norm
+    else:
+        normal = np.cross(x[near[1]] - base, x[near[2]] - base) if len(near) > 2 else None
+        if normal is None or np.linalg.norm(normal) < 1e-9:
+            return None
+        normal = normal / np.linalg.norm(normal)
+    out = x.copy()
+    out[k] = x[k] - 2.0 * ((x[k] - base) @ normal) * normal
+    return out
+
+
+def _connected(pairs: np.ndarray, n: int) -> bool:
+    try:
+        _check_connected(pairs, n)
+    except DisconnectedGraphError:
+        return False
+    return True
+
+
+def _full_matrix(pairs, dist, n) -> np.ndarray:
+    full = np.full((n, n), np.nan)
+    full[pairs[:, 0], pairs[:, 1]] = dist
+    full[pairs[:, 1], pairs[:, 0]] = dist
+    full.flat[:: n + 1] = 0.0
+    return full
+
+
+def _cold_starts(problem: _Problem, initializer: str) -> list[tuple[str, np.ndarray]]:
+    """Starts from the ranges alone, the requested one first: trilateration (the paper's), classical
+    MDS on the shortest-path-completed matrix, and SMACOF on the measured pairs only (missing
+    pairs get weight 0, so the shortest-path fill cannot fold the start)."""
+    full, dim = problem.full, problem.dim
+    starts = []
+    order = ["trilateration", "mds"] if initializer != "mds" else ["mds", "trilateration"]
+    for name in order:
+        try:
+            if name == "trilateration":
+                starts.append((name, trilaterate_initial(full, dim)))
+            else:
+                mds = classical_mds(full, dim)
+                starts.append(("mds", mds))
+                if np.isnan(full).any():
+                    starts.append(("smacof", smacof(full, mds, problem.inv_var, problem.pairs)))
+        except GeometryError:
+            if name == initializer:
+                raise
+    if not starts and dim == 3:
+        # Anchors on robots of similar height: noise can leave the ranges no 3D embedding, and
+        # both starts come out flat. A flat start is a saddle of the cost (zero gradient in z),
+        # so lift it off the plane along MDS's third axis and let least squares find the heights.
+        starts.append(("mds+lift", _lifted_mds(full)))
+    return starts
+
+
+def _lifted_mds(full: np.ndarray) -> np.ndarray:
+    filled = _shortest_path_filled(full)
+    n = filled.shape[0]
+    centering = np.eye(n) - 1.0 / n
+    vals, vecs = np.linalg.eigh(-0.5 * centering @ (filled**2) @ centering)
+    # the constant vector is in the centred Gram's null space: with a negative third eigenvalue it
+    # would outrank the real third axis and lift nothing
+    real_axes = np.abs(vecs.sum(0)) < 0.5 * np.sqrt(n)
+    order = [k for k in np.argsort(vals)[::-1] if real_axes[k]][:3]
+    scale = np.sqrt(np.maximum(vals[order], 0.0))
+    scale[2] = max(scale[2], 0.05 * scale[0])  # a definite lift: 5 % of the largest extent
+    return vecs[:, order] * scale
+
+
+def _shortest_path_filled(full: np.ndarray) -> np.ndarray:
+    if not np.isnan(full).any():
+        return full
+    graph = np.where(np.isnan(full), 0.0, full)
+    return shortest_path(graph, method="D", directed=False)
+
+
+def smacof(full: np.ndarray, x0: np.ndarray, inv_var: np.ndarray, pairs: np.ndarray,
+           iterations: int = 100, tol: float = 1e-6) -> np.ndarray:
+    """Weighted SMACOF (stress majorization) over the measured pairs only (weights 1/sigma^2).
+
+    Each Guttman transform lowers the weighted stress monotonically; it is far less prone than
+    Gauss-Newton to cross into a folded shape from a rough start, which makes it a good start.
+    """
+    n = len(x0)
+    w = np.zeros((n, n))
+    w[pairs[:, 0], pairs[:, 1]] = inv_var
+    w[pairs[:, 1], pairs[:, 0]] = inv_var
+    delta = np.nan_to_num(full)
+    v = -w.copy()
+    v.flat[:: n + 1] = w.sum(1)
+    v_pinv = np.linalg.pinv(v)
+    x = x0.copy()
+    prev = np.inf
+    for _ in range(iterations):
+        d = np.linalg.norm(x[:, None] - x[None], axis=-1)
+        ratio = np.where(d > 1e-12, w * delta / np.maximum(d, 1e-12), 0.0)
+        b = -ratio
+        b.flat[:: n + 1] = ratio.sum(1)
+        x = v_pinv @ (b @ x)
+        stress = float((w * (np.linalg.norm(x[:, None] - x[None], axis=-1) - delta) ** 2).sum())
+        if prev - stress <= tol * max(prev, 1e-300):
+            break
+        prev = stress
+    return x
 
 
 def _gauge_flip(x_gauge: np.ndarray, refs: tuple[int, ...]) -> np.ndarray | None:
@@ -245,22 +654,23 @@ def _rotate_covariance(cov: np.ndarray, rot: np.ndarray, n: int, dim: int) -> np
 
 # -- input handling ----------------------------------------------------------------------------
 def _pair_data(ranges, range_std_m, min_range_std_m):
-    if range_std_m is not None and not (np.isfinite(range_std_m) and range_std_m > 0):
-        raise ValueError(f"range_std_m={range_std_m!r}: must be > 0")
     if isinstance(ranges, RangeMatrix):
-        complete = ranges.complete_symmetric(min_range_std_m, range_std_m)
+        matrix = ranges
+        complete = matrix.complete_symmetric(min_range_std_m, range_std_m)
         if complete is not None:  # the usual round: nothing to validate further
-            return (*complete, ranges.n_anchors)
-        mean, count = np.asarray(ranges.mean_m, float), np.asarray(ranges.count)
-        bad = (count > 0) & ~np.isfinite(mean)
+            return (*complete, matrix.n_anchors)
+        mean, count = matrix.mean_m, matrix.count
+        bad = (count > 0) & ~np.isfinite(mean)  # the arrays may have changed since construction
         if bad.any():
             i, j = np.argwhere(bad)[0]
             raise InvalidRangeError(f"range ({i}, {j}) = {mean[i, j]!r} with count {count[i, j]}: not finite")
-        matrix = ranges
     else:
-        mean = np.asarray(ranges, dtype=float)
+        try:
+            mean = np.asarray(ranges, dtype=float)
+        except (TypeError, ValueError) as err:
+            raise InvalidRangeError(f"ranges: not a numeric matrix ({err})") from None
         if mean.ndim != 2 or mean.shape[0] != mean.shape[1]:
-            raise InvalidRangeError(f"ranges: expected a square matrix, got shape {mean.shape}")
+            raise InvalidRangeError(f"ranges: expected a square (n, n) matrix, got shape {mean.shape}")
         if np.isinf(mean).any():
             i, j = np.argwhere(np.isinf(mean))[0]
             raise InvalidRangeError(f"range ({i}, {j}) = {mean[i, j]!r}: not finite")
@@ -272,17 +682,23 @@ def _pair_data(ranges, range_std_m, min_range_std_m):
         upper = np.triu(np.isfinite(sym), 1)
         std = np.full(mean.shape, range_std_m if range_std_m is not None else min_range_std_m)
         matrix = RangeMatrix(np.where(upper, sym, np.nan), std, upper.astype(int))
-    if np.any(mean < 0):  # NaN compares False
-        negative = (mean < 0) & ~np.eye(mean.shape[0], dtype=bool)
-        if negative.any():
-            i, j = np.argwhere(negative)[0]
-            raise InvalidRangeError(f"range ({i}, {j}) = {mean[i, j]!r}: negative")
+    if mean.shape[0] < 2:
+        raise TooFewAnchorsError(f"{mean.shape[0]} anchors: a calibration needs at least 3")
+    off_diagonal = ~np.eye(mean.shape[0], dtype=bool)
+    negative = (mean < -NEGATIVE_RANGE_TOLERANCE_M) & off_diagonal  # NaN compares False
+    if negative.any():
+        i, j = np.argwhere(negative)[0]
+        raise InvalidRangeError(
+            f"range ({i}, {j}) = {mean[i, j]!r}: negative beyond the noise of a corrected range "
+            f"(-{NEGATIVE_RANGE_TOLERANCE_M} m); raw ranges must be corrected first")
     if range_std_m is not None:
         pairs, dist, var = matrix.symmetric(std_m=float(range_std_m))
     else:
         pairs, dist, var = matrix.symmetric(min_std_m=min_range_std_m)
-    if not np.all(var > 0):
-        raise ValueError("range variances must be > 0: give range_std_m or min_range_std_m > 0")
+    if not np.all((var > 0) & np.isfinite(var)):
+        raise InvalidRangeError("range variances must be finite and > 0: check the stds and counts")
+    if len(pairs) == 0:
+        raise DisconnectedGraphError("no pair was measured")
     return pairs, dist, var, mean.shape[0]
 
 
@@ -374,6 +790,9 @@ def trilaterate_initial(full: np.ndarray, dim: int) -> np.ndarray:
         xk = (full[0, k] ** 2 - full[1, k] ** 2 + d01**2) / (2 * d01)
         rest2 = max(full[0, k] ** 2 - xk**2, 0.0)
         x[k] = _best_candidate(_trilaterate_3d(full, x, k, xk, rest2, scale), full[k, :k], x[:k])
+    if np.abs(x[:, 2]).max() < 1e-3 * scale:
+        # noise drove every z under the root to zero: a flat start is no 3D start (MDS takes over)
+        raise GeometryError("trilateration placed every anchor in one plane")
     return x
 
 
@@ -436,10 +855,7 @@ def _best_candidate(candidates, ranges_to_placed, placed):
 
 def classical_mds(full: np.ndarray, dim: int) -> np.ndarray:
     """Classical MDS on the range matrix (missing entries filled by shortest paths)."""
-    filled = full.copy()
-    if np.isnan(filled).any():
-        graph = np.where(np.isnan(filled), 0.0, filled)
-        filled = shortest_path(graph, method="D", directed=False)
+    filled = _shortest_path_filled(full)
     n = filled.shape[0]
     centering = np.eye(n) - 1.0 / n
     gram = -0.5 * centering @ (filled**2) @ centering

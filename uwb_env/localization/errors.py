@@ -19,3 +19,7 @@ class DisconnectedGraphError(LocalizationError):
 
 class GeometryError(LocalizationError):
     """Degenerate geometry: coincident or collinear (coplanar in 3D) anchors, frame unfixable."""
+
+
+class SolverArgumentError(ValueError):
+    """A solver argument is out of its domain (the message names the argument and its value)."""

@@ -6,9 +6,11 @@ number of numpy calls per iteration small and fixed:
 
 - The problem's *structure* (pairs, which coordinates the gauge fixes) is compiled once into
   index arrays and cached: the env calibrates the same anchors over and over.
-- Pair differences are one matmul with a +1/-1 incidence matrix; the Jacobian is written with
-  two ``put`` calls into a buffer whose extra last column absorbs the gauge-fixed coordinates
-  (so no column selection is needed, and that column's step is zero by construction).
+- The normal equations J^T W J and J^T W r are accumulated from per-pair blocks (each pair
+  touches two anchors: four dim x dim blocks and two gradient entries) with one ``bincount``
+  each, so an iteration costs O(pairs), not the O(pairs x coordinates^2) of a dense product
+  (~N^4; at N = 64 that product also spun up BLAS threads that fought over two cores). An
+  extra last coordinate absorbs the gauge-fixed ones (no column selection; its step is zero).
 - The normal equations are solved by LAPACK's Cholesky (``dposv``), whose call overhead is a
   fraction of ``numpy.linalg.solve``'s.
 - It starts as Gauss-Newton (no damping) and only damps after a step that raised the cost.
@@ -50,6 +52,9 @@ class PairStructure:
         covariance_take: (n*dim, n*dim) flat indices into an (F+1, F+1) matrix that expand it
             to all coordinates (fixed ones read the extra row and column).
         identity: (F+1, F+1) identity (read-only), the right-hand side that inverts.
+        pi, pj: (P,) the pairs' anchors.
+        block_index: (P, 4, dim, dim) flat indices into (F+1, F+1) of each pair's four blocks
+            (ii, jj, ij, ji) of J^T W J; ``grad_index`` (P, 2, dim) of its gradient entries.
     """
 
     n: int
@@ -61,6 +66,10 @@ class PairStructure:
     column: np.ndarray
     covariance_take: np.ndarray
     identity: np.ndarray
+    pi: np.ndarray
+    pj: np.ndarray
+    block_index: np.ndarray
+    grad_index: np.ndarray
 
 
 def pair_structure(pairs: np.ndarray, n: int, dim: int, free: np.ndarray) -> PairStructure:
@@ -85,10 +94,45 @@ def _structure(n: int, dim: int, pair_bytes: bytes, free_bytes: bytes) -> PairSt
     row0 = (np.arange(p) * (n_free + 1))[:, None]
     take = column[:, None] * (n_free + 1) + column[None, :]
     identity = np.eye(n_free + 1)
-    for array in (incidence, column, take, identity):
+    pi, pj = pairs[:, 0].copy(), pairs[:, 1].copy()
+    ci, cj = cols[pi], cols[pj]  # (P, dim) columns of each pair's coordinates
+    m = n_free + 1
+    block = np.stack([ci[:, :, None] * m + ci[:, None, :], cj[:, :, None] * m + cj[:, None, :],
+                      ci[:, :, None] * m + cj[:, None, :], cj[:, :, None] * m + ci[:, None, :]], axis=1)
+    grad = np.stack([ci, cj], axis=1)
+    for array in (incidence, column, take, identity, pi, pj, block, grad):
         array.flags.writeable = False  # shared by every solve with this layout
-    return PairStructure(n, dim, n_free, incidence, row0 + cols[pairs[:, 0]], row0 + cols[pairs[:, 1]], column,
-                         take, identity)
+    return PairStructure(n, dim, n_free, incidence, row0 + ci, row0 + cj, column, take, identity, pi, pj,
+                         block, grad)
+
+
+_BLOCK_SIGNS = np.array([1.0, 1.0, -1.0, -1.0])[None, :, None, None]
+_GRAD_SIGNS = np.array([1.0, -1.0])[None, :, None]
+
+
+def _unit_vectors(structure: PairStructure, x: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals ||x_i - x_j|| - dist (P,) and unit vectors (x_i - x_j) / ||x_i - x_j|| (P, dim)."""
+    diff = x[structure.pi] - x[structure.pj]
+    if structure.dim == 2:
+        d = np.hypot(diff[:, 0], diff[:, 1])
+    else:
+        d = np.sqrt((diff * diff).sum(1))
+    return d - dist, diff / np.maximum(d, 1e-12)[:, None]
+
+
+def _normal_equations(structure: PairStructure, v: np.ndarray, wz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """J^T W J (F+1, F+1) and J^T W z (F+1,) from per-pair blocks; ``v`` = whitened, weighted
+    unit vectors (the Jacobian rows' nonzero part), ``wz`` the matching residuals. The extra
+    coordinate's row and column are reset to the identity's."""
+    m = structure.n_free + 1
+    outer = v[:, None, :, None] * v[:, None, None, :] * _BLOCK_SIGNS
+    a = np.bincount(structure.block_index.ravel(), outer.ravel(), m * m).reshape(m, m)
+    g = np.bincount(structure.grad_index.ravel(), ((v * wz[:, None])[:, None, :] * _GRAD_SIGNS).ravel(), m)
+    a[-1, :] = 0.0
+    a[:, -1] = 0.0
+    a[-1, -1] = 1.0
+    g[-1] = 0.0
+    return a, g
 
 
 @dataclass
@@ -179,31 +223,34 @@ def solve_pair_ranges(
             robust losses, whose reweighting converges only linearly.
         ftol: or when the relative cost decrease falls below this.
     """
-    n, dim, nf = structure.n, structure.dim, structure.n_free
+    n, dim = structure.n, structure.dim
     column = structure.column
+    if not (isinstance(max_iterations, int | np.integer) and max_iterations >= 1):
+        raise ValueError(f"max_iterations={max_iterations!r}: must be an integer >= 1")
+    if not (math.isfinite(f_scale) and f_scale > 0):
+        raise ValueError(f"f_scale={f_scale!r}: must be a finite number > 0")
     x = np.array(x0, dtype=float).reshape(n, dim)
     sqrt_iv = np.sqrt(inv_var)
     linear = loss == "linear"
     if xtol_sigma is None:
         xtol_sigma = 1e-3 if linear else 1e-6
     # floor: steps below ~1e-12 of the scene's size are lost to rounding
-    xtol = max(xtol_sigma / float(sqrt_iv.max()), 1e-12 * float(dist.max()))
+    xtol = max(xtol_sigma / float(sqrt_iv.max()), 1e-12 * float(np.abs(dist).max()))
     xtol2 = xtol * xtol
-    # z and jac are whitened (divided by sigma_p); robust weights scale them further per step
-    r, jac = pair_residuals(structure, x, dist, sqrt_iv)
+    # z is whitened (divided by sigma_p); robust weights scale it further per step
+    r, u = _unit_vectors(structure, x, dist)
     z = r * sqrt_iv
     cost = 0.5 * float(z @ z) if linear else robust_cost(z, loss, f_scale)
     info = None
     lam, message, converged, it = 0.0, "max_iterations reached", False, 0
     for it in range(1, max_iterations + 1):
         if linear:
-            wjac, wz = jac, z
+            root_w = sqrt_iv
+            wz = z
         else:
-            root_w = np.sqrt(irls_weights(z, loss, f_scale))
-            wjac, wz = jac * root_w[:, None], z * root_w
-        a = wjac.T @ wjac
-        a[nf, nf] = 1.0
-        g = wjac.T @ wz
+            rw = np.sqrt(irls_weights(z, loss, f_scale))
+            root_w, wz = sqrt_iv * rw, z * rw
+        a, g = _normal_equations(structure, u * root_w[:, None], wz)
         while True:
             if lam:
                 diag = np.diag(a).copy()
@@ -212,10 +259,11 @@ def solve_pair_ranges(
             else:
                 _, step, status = dposv(a, g)
             if status == 0:
-                delta = step.take(column).reshape(n, dim)
+                delta = step.take(column).reshape(n, dim)  # the gauge coordinates read step[F] = 0
                 if float(step @ step) <= xtol2:
                     x -= delta
-                    z = z - jac @ step  # first order; the gauge column of jac is zero
+                    # residuals to first order (their error is ~ step^2 / range)
+                    z = z - sqrt_iv * ((delta[structure.pi] - delta[structure.pj]) * u).sum(1)
                     r = z / sqrt_iv
                     cost = 0.5 * float(z @ z) if linear else robust_cost(z, loss, f_scale)
                     message, converged = "converged", True
@@ -223,7 +271,7 @@ def solve_pair_ranges(
                         info = a  # J^T W J barely moves over a sub-xtol step
                     break
                 trial = x - delta
-                r_new, jac_new = pair_residuals(structure, trial, dist, sqrt_iv)
+                r_new, u_new = _unit_vectors(structure, trial, dist)
                 z_new = r_new * sqrt_iv
                 cost_new = 0.5 * float(z_new @ z_new) if linear else robust_cost(z_new, loss, f_scale)
                 if cost_new <= cost:  # False for NaN
@@ -235,14 +283,12 @@ def solve_pair_ranges(
         if message != "max_iterations reached":
             break
         small_gain = cost - cost_new <= ftol * max(cost, 1e-300)
-        x, r, z, jac, cost = trial, r_new, z_new, jac_new, cost_new
+        x, r, z, u, cost = trial, r_new, z_new, u_new, cost_new
         lam = lam / 10.0 if lam > 1e-6 else 0.0
         if small_gain:
             message, converged = "converged", True
             break
     robust_w = np.ones_like(z) if linear else irls_weights(z, loss, f_scale)
     if info is None:
-        wjac = jac if linear else jac * np.sqrt(robust_w)[:, None]
-        info = wjac.T @ wjac
-        info[nf, nf] = 1.0
+        info, _ = _normal_equations(structure, u * (sqrt_iv * np.sqrt(robust_w))[:, None], z)
     return PairSolution(x, info, r, inv_var * robust_w, cost, it, converged, message, structure)

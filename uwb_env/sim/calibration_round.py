@@ -3,6 +3,10 @@
 Every anchor is initiator in turn (index order, the paper's counter-clockwise order); each
 initiator runs K SS-TWR exchanges with every other anchor, then hands the token on. Robots
 keep moving, so each exchange ranges the positions at its own timestamp.
+
+A *per-anchor* round is one initiator's block of that schedule alone (``initiators=[i]``): the
+anchor re-locates against the others, at 1/n of a team round's channel time (one hand-off and
+(n - 1) K exchanges), with the same fitted constants.
 """
 
 from __future__ import annotations
@@ -38,21 +42,25 @@ class RoundTiming:
             )
         return cls(handoff_s=float(handoff), exchange_s=float(exchange))
 
-    def duration_s(self, n_anchors: int, measurements_per_pair: int) -> float:
+    def duration_s(self, n_anchors: int, measurements_per_pair: int, n_initiators: int | None = None) -> float:
         n, k = n_anchors, measurements_per_pair
-        return n * self.handoff_s + n * (n - 1) * k * self.exchange_s
+        m = n if n_initiators is None else n_initiators
+        return m * self.handoff_s + m * (n - 1) * k * self.exchange_s
 
-    def schedule(self, n_anchors: int, measurements_per_pair: int):
-        """Per exchange: (time offset from round start (s), initiator, responder), in order."""
+    def schedule(self, n_anchors: int, measurements_per_pair: int, initiators=None):
+        """Per exchange: (time offset from round start (s), initiator, responder), in order.
+
+        ``initiators``: the anchors that initiate, in turn (default: all, a team round)."""
         n, k = n_anchors, measurements_per_pair
-        initiator = np.repeat(np.arange(n), (n - 1) * k)
-        responder_block = np.array([j for i in range(n) for j in range(n) if j != i]).reshape(n, n - 1)
+        order = np.arange(n) if initiators is None else np.asarray(initiators, dtype=int)
+        if order.size == 0 or order.min() < 0 or order.max() >= n or len(set(order.tolist())) != order.size:
+            raise ValueError(f"initiators={initiators!r}: must be distinct anchor indices in [0, {n})")
+        slot = np.repeat(np.arange(len(order)), (n - 1) * k)  # position of the initiator in turn
+        initiator = order[slot]
+        responder_block = np.array([[j for j in range(n) if j != i] for i in order]).reshape(len(order), n - 1)
         responder = np.repeat(responder_block, k, axis=1).ravel()
-        index_in_block = np.tile(np.arange((n - 1) * k), n)
-        times = (
-            (initiator + 1) * self.handoff_s
-            + (initiator * (n - 1) * k + index_in_block + 1) * self.exchange_s
-        )
+        index_in_block = np.tile(np.arange((n - 1) * k), len(order))
+        times = (slot + 1) * self.handoff_s + (slot * (n - 1) * k + index_in_block + 1) * self.exchange_s
         return times, initiator, responder
 
 
@@ -64,14 +72,19 @@ class CalibrationRound:
         timing: fitted round timing.
         measurements_per_pair: K.
         start_time_s: simulation time at which the start command was given.
+        initiators: the anchors that initiate in turn (default all: a team round; one index:
+            a per-anchor round).
     """
 
-    def __init__(self, n_anchors: int, timing: RoundTiming, measurements_per_pair: int, start_time_s: float):
+    def __init__(self, n_anchors: int, timing: RoundTiming, measurements_per_pair: int, start_time_s: float,
+                 initiators=None):
         self.n_anchors = n_anchors
-        offsets, self.initiator, self.responder = timing.schedule(n_anchors, measurements_per_pair)
+        offsets, self.initiator, self.responder = timing.schedule(n_anchors, measurements_per_pair, initiators)
+        self.initiators = None if initiators is None else tuple(int(i) for i in initiators)
         self.times_s = start_time_s + offsets
         self.start_time_s = start_time_s
-        self.end_time_s = start_time_s + timing.duration_s(n_anchors, measurements_per_pair)
+        n_init = None if initiators is None else len(self.initiators)
+        self.end_time_s = start_time_s + timing.duration_s(n_anchors, measurements_per_pair, n_init)
         self.ranges_m = np.full(len(offsets), np.nan)
         self._next = 0
 

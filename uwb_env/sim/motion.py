@@ -7,6 +7,10 @@ Each robot follows its group's :class:`~uwb_env.config.MotionConfig`:
 - ``random_waypoint``: drive to a uniformly drawn waypoint, pause there, pick the next.
 - ``stop_and_go``: ``heading`` plus random pauses (rate ``pause_rate_per_s``).
 - ``static``: never moves.
+- ``patrol``: random waypoints within ``patrol_radius_m`` of the robot's starting slot (a
+  formation held around the work area).
+- ``inside_hull``: random waypoints inside the polygon of the first group's (the anchors')
+  starting slots.
 
 Motion is planar (x, y); in 3D each robot keeps its height. Robots reflect off the walls of
 the square area ``[0, L]^2``. One kernel moves all robots so that a step costs a fixed number
@@ -55,8 +59,17 @@ class MotionModel:
         self.position_std = np.where(static, 0.0, column("position_noise_std_m_per_sqrt_s"))
         self.pause_rate = np.where(models == "stop_and_go", column("pause_rate_per_s"), 0.0)
         self.pause_min, self.pause_max = column("pause_min_s"), column("pause_max_s")
-        self.waypoint_mask = models == "random_waypoint"
+        self.waypoint_mask = np.isin(models, ("random_waypoint", "patrol", "inside_hull"))
         self.waypoints = rng.uniform(0.0, self.area_size_m, (n, 2)).view(np.complex128)[:, 0]
+        # Formation models draw waypoints around home slots (kept from the start positions).
+        self._patrol = models == "patrol"
+        self._hull = models == "inside_hull"
+        self._home = self.positions[:, :2].copy().view(np.complex128)[:, 0]
+        self._radius = column("patrol_radius_m")
+        self._hull_points = self._home[: self.groups[0][1]] if self.groups else self._home[:0]
+        if self._patrol.any() or self._hull.any():
+            rows = self._patrol | self._hull
+            self.waypoints[rows] = self._draw_waypoints(rows, rng)
         self.pause_left_s = np.zeros(n)
         self._any_waypoint = bool(self.waypoint_mask.any())
         self._any_pause_rate = bool((self.pause_rate > 0).any())
@@ -130,11 +143,25 @@ class MotionModel:
         reached = wp & (dist <= step_len) & (self.pause_left_s <= 0.0)
         if reached.any():
             # Arrive exactly, pause there, and aim at the next waypoint afterwards.
-            k = int(reached.sum())
             self.pause_left_s[reached] = rng.uniform(self.pause_min[reached], self.pause_max[reached])
-            self.waypoints[reached] = rng.uniform(0.0, self.area_size_m, (k, 2)).view(np.complex128)[:, 0]
+            self.waypoints[reached] = self._draw_waypoints(reached, rng)
             step_len = np.where(reached, dist, step_len)
         return np.where(wp, np.angle(to_wp), heading), step_len
+
+    def _draw_waypoints(self, rows: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Next waypoints (complex) of the robots in ``rows``, by each robot's model."""
+        k = int(rows.sum())
+        out = rng.uniform(0.0, self.area_size_m, (k, 2)).view(np.complex128)[:, 0]
+        patrol, hull = self._patrol[rows], self._hull[rows]
+        if patrol.any():  # uniform in the disc around the home slot
+            m = int(patrol.sum())
+            r = self._radius[rows][patrol] * np.sqrt(rng.random(m))
+            out[patrol] = self._home[rows][patrol] + r * np.exp(2j * np.pi * rng.random(m))
+        if hull.any() and len(self._hull_points) >= 3:  # convex combinations of the slots
+            w = rng.dirichlet(np.ones(len(self._hull_points)), int(hull.sum()))
+            out[hull] = w @ self._hull_points
+        flat = np.clip(out.view(np.float64), 0.0, self.area_size_m)
+        return flat.view(np.complex128)
 
     def _start_pauses(self, paused: np.ndarray, dt_s: float, rng: np.random.Generator) -> None:
         # Start a pause with probability rate * dt (Poisson-process discretization).

@@ -102,10 +102,11 @@ class World(RoundRunner):
         diff = pos[: self._n, None, :] - pos[None, self._n :, :]
         return self.range_model.measure(np.sqrt((diff * diff).sum(-1)), self.rng)
 
-    def start_calibration_round(self, measurements_per_pair: int | None = None) -> CalibrationRound:
-        """Begin a round at the current time; :meth:`step` fills it until ``round.done``."""
+    def start_calibration_round(self, measurements_per_pair: int | None = None, initiators=None) -> CalibrationRound:
+        """Begin a round at the current time; :meth:`step` fills it until ``round.done``.
+        ``initiators``: e.g. ``[i]`` for a per-anchor round (default: the team round)."""
         k = measurements_per_pair or self.config.calibration.measurements_per_pair
-        self.round = CalibrationRound(self.config.n_anchors, self.timing, k, self.time_s)
+        self.round = CalibrationRound(self.config.n_anchors, self.timing, k, self.time_s, initiators)
         return self.round
 
     def finish_calibration_round(self) -> CalibrationRound:
@@ -151,6 +152,16 @@ class World(RoundRunner):
         xy = center + radius * np.column_stack([np.cos(angles), np.sin(angles)])
         xy = xy + cfg.anchor_jitter_fraction * size * rng.uniform(-1, 1, (n, 2))
         xy = np.clip(xy, 0.0, size)
+        if cfg.dim == 3:
+            # Ranges fix the third coordinate only as far as the anchors leave one plane: a 3D
+            # deployment mounts them at clearly different heights. Heights are redrawn until the
+            # anchors' thickness off their best plane is at least a fifth of the height range.
+            for _ in range(100):
+                anchors = self._with_height(xy, rng)
+                centred = anchors - anchors.mean(0)
+                if np.linalg.svd(centred, compute_uv=False)[-1] >= 0.2 * cfg.area_height_m:
+                    break
+            return anchors
         return self._with_height(xy, rng)
 
     def initial_tags(self, anchors: np.ndarray, rng: np.random.Generator) -> np.ndarray:

@@ -1,0 +1,162 @@
+"""Calibration that is right when it says so: fit verdicts, multi-start, weights, bad input."""
+
+import numpy as np
+import pytest
+
+from uwb_env import parallel_env
+from uwb_env.localization import InvalidRangeError, TooFewAnchorsError, aligned_errors, calibrate_anchors
+from uwb_env.localization.calibration import default_range_std_m
+from uwb_env.localization.errors import SolverArgumentError
+from uwb_env.measurements import RangeMatrix, pool_rounds
+
+
+def distances(x):
+    return np.linalg.norm(x[:, None] - x[None], axis=-1)
+
+
+def noisy_round(x, rng, sigma, k):
+    n = len(x)
+    samples = distances(x)[None] + sigma * rng.standard_normal((k, n, n))
+    count = np.full((n, n), k)
+    np.fill_diagonal(count, 0)
+    mean, std = samples.mean(0), samples.std(0, ddof=1)
+    np.fill_diagonal(mean, np.nan)
+    np.fill_diagonal(std, np.nan)
+    return RangeMatrix(mean, std, count)
+
+
+def test_missing_pairs_noise_free_reach_the_exact_shape():
+    # the issue's case: 3 of 28 pairs missing, noise-free; the MDS start on a shortest-path fill
+    # used to stop in a fold (cost 9.8e3) reported as converged
+    rng = np.random.default_rng(1)
+    for _ in range(30):
+        x = rng.uniform(0, 10, (8, 2))
+        d = distances(x)
+        for i, j in [(1, 3), (5, 7), (2, 5)]:
+            d[i, j] = d[j, i] = np.nan
+        res = calibrate_anchors(d, range_std_m=0.05)
+        assert res.converged and res.cost < 1e-8
+        assert aligned_errors(res.positions, x).max() < 1e-5
+
+
+def test_thin_strip_first_calibration_is_never_a_confident_fold():
+    rng = np.random.default_rng(7)
+    sigma = default_range_std_m()
+    wrong = 0
+    for _ in range(60):
+        x = np.column_stack([rng.uniform(0, 40, 8), rng.uniform(0, 4, 8)])
+        res = calibrate_anchors(noisy_round(x, rng, sigma, 5))
+        if res.converged and aligned_errors(res.positions, x).max() > 0.5:
+            wrong += 1
+    assert wrong == 0
+
+
+def test_a_fit_the_noise_cannot_explain_is_not_success():
+    rng = np.random.default_rng(2)
+    x = rng.uniform(0, 10, (6, 2))
+    d = distances(x) + 0.01 * rng.standard_normal((6, 6))
+    d = (d + d.T) / 2
+    d[0, 4] = d[4, 0] = 0.0  # a zero range between distinct anchors: garbage
+    res = calibrate_anchors(d, range_std_m=0.03)
+    assert res.status == "poor_fit" and not res.converged and res.optimizer_converged
+    assert res.fit_p_value < 1e-3 and res.chi2 > res.dof
+    good = calibrate_anchors(distances(x), range_std_m=0.03)
+    assert good.status == "ok" and good.converged and good.fit_p_value > 1e-3
+
+
+def test_default_weights_come_from_the_range_model_and_the_count():
+    rng = np.random.default_rng(4)
+    sigma = default_range_std_m()
+    x = rng.uniform(0, 10, (8, 2))
+    m = noisy_round(x, rng, sigma, 5)
+    res = calibrate_anchors(m)
+    np.testing.assert_allclose(res.range_var_m2, sigma**2 / 10)  # both directions, K = 5 each
+    sample = calibrate_anchors(m, weighting="sample")
+    assert not np.allclose(sample.range_var_m2, res.range_var_m2)
+
+
+def test_default_call_covariance_is_consistent():
+    # NEES of the anchors (gauge anchors excluded) averages about the number of free coordinates
+    rng = np.random.default_rng(5)
+    sigma = default_range_std_m()
+    x = rng.uniform(0, 12, (6, 2))
+    nees = []
+    for _ in range(150):
+        res = calibrate_anchors(noisy_round(x, rng, sigma, 5))
+        truth = x - x[0]
+        ex = truth[1] / np.linalg.norm(truth[1])
+        rot = np.array([ex, [-ex[1], ex[0]]])
+        t = truth @ rot.T
+        if (t[:, 1].sum() < 0) != (res.positions[:, 1].sum() < 0):
+            t[:, 1] *= -1
+        err = (res.positions - t).ravel()
+        free = np.ones(12, bool)
+        free[[0, 1, 3]] = False
+        cov = res.covariance[np.ix_(free, free)]
+        nees.append(err[free] @ np.linalg.solve(cov, err[free]))
+    assert np.mean(nees) == pytest.approx(9, rel=0.2)
+
+
+def test_corrected_range_below_zero_is_a_measurement():
+    x = np.array([[0.0, 0.0], [8.0, 0.5], [3.0, 7.0], [3.02, 7.0], [9.0, 9.0]])
+    d = distances(x)
+    d[2, 3] = d[3, 2] = -0.04  # two anchors 2 cm apart: noise took the corrected range below 0
+    res = calibrate_anchors(d, range_std_m=0.05)
+    assert np.isfinite(res.positions).all() and res.status == "ok"
+    with pytest.raises(InvalidRangeError, match=r"\(2, 3\)"):
+        d[2, 3] = d[3, 2] = -3.0
+        calibrate_anchors(d, range_std_m=0.05)
+
+
+def test_close_anchors_never_break_a_reset():
+    for seed in (0, 1):
+        env = parallel_env(sim={"n_anchors": 32, "n_tags": 3})
+        env.reset(seed=seed)
+        env.step({a: 0 for a in env.agents})
+
+
+@pytest.mark.parametrize("seed", [1, 6, 14, 21, 24, 26])
+def test_3d_reset_works_where_the_flat_trilateration_start_broke_it(seed):
+    env = parallel_env(sim={"dim": 3})
+    obs, _ = env.reset(seed=seed)
+    assert all(np.isfinite(o).all() for o in obs.values())
+
+
+def test_pooled_rounds_add_counts_and_weight_means():
+    rng = np.random.default_rng(0)
+    x = rng.uniform(0, 10, (4, 2))
+    a, b = noisy_round(x, rng, 0.05, 5), noisy_round(x, rng, 0.05, 15)
+    p = pool_rounds(a, b)
+    assert (p.count[~np.eye(4, dtype=bool)] == 20).all()
+    np.testing.assert_allclose(p.mean_m[0, 1], (5 * a.mean_m[0, 1] + 15 * b.mean_m[0, 1]) / 20)
+
+
+@pytest.mark.parametrize(
+    "call, error, field",
+    [
+        (lambda d, m: calibrate_anchors(d, range_std_m=np.inf), SolverArgumentError, "range_std_m"),
+        (lambda d, m: calibrate_anchors(m, weighting="sample", min_range_std_m=np.nan), SolverArgumentError,
+         "min_range_std_m"),
+        (lambda d, m: calibrate_anchors(d[:1, :1], range_std_m=0.05), TooFewAnchorsError, "anchors"),
+        (lambda d, m: calibrate_anchors(np.zeros((0, 0)), range_std_m=0.05), InvalidRangeError, "shape"),
+        (lambda d, m: calibrate_anchors(d, f_scale=0.0), SolverArgumentError, "f_scale"),
+        (lambda d, m: calibrate_anchors(d, f_scale=-1.0), SolverArgumentError, "f_scale"),
+        (lambda d, m: calibrate_anchors(d, max_iterations=-3), SolverArgumentError, "max_iterations"),
+        (lambda d, m: RangeMatrix(m.mean_m, m.std_m[:3, :3], m.count), InvalidRangeError, "std_m"),
+        (lambda d, m: RangeMatrix(m.mean_m, m.std_m, m.count[:3]), InvalidRangeError, "count"),
+        (lambda d, m: RangeMatrix(m.mean_m, m.std_m, -m.count), InvalidRangeError, "count"),
+        (lambda d, m: RangeMatrix(m.mean_m, np.where(m.count > 0, np.inf, np.nan), m.count), InvalidRangeError,
+         "std_m"),
+        (lambda d, m: RangeMatrix(m.mean_m, -m.std_m, m.count), InvalidRangeError, "std_m"),
+    ],
+)
+def test_bad_input_raises_a_typed_error_naming_the_field(call, error, field):
+    rng = np.random.default_rng(0)
+    x = rng.uniform(0, 10, (5, 2))
+    with pytest.raises(error, match=field):
+        call(distances(x), noisy_round(x, rng, 0.05, 5))
+
+
+def test_range_matrix_accepts_lists():
+    m = RangeMatrix([[np.nan, 1.0], [1.0, np.nan]], [[np.nan, 0.1], [0.1, np.nan]], [[0, 5], [5, 0]])
+    assert m.mean_m.shape == (2, 2) and m.count.dtype.kind == "i"
