@@ -25,7 +25,7 @@ def test_integer_optimum_and_noise_free_plateau():
     result = tune_family("fixed", lambda ps: [-abs(p - 11) for p in ps], refine_rounds=5)
     assert result.best_value == 11 and result.best_spec == "fixed:11"
     # A monotone objective ends at the grid's edge, not in between.
-    assert tune_family("fixed", lambda ps: list(ps)).best_spec == "fixed:64"
+    assert tune_family("fixed", lambda ps: list(ps)).best_spec == "fixed:300"
 
 
 def test_tune_command_on_short_episodes(tmp_path):

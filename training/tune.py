@@ -25,9 +25,9 @@ VALIDATION_SEED_BASE = 500_000
 
 # family -> (grid, integer parameter?, (lowest, highest) allowed)
 FAMILIES: dict[str, tuple[tuple[float, ...], bool, tuple[float, float]]] = {
-    "fixed": ((4, 6, 8, 10, 13, 16, 20, 25, 32, 45, 64), True, (1, 500)),
-    "threshold": ((0.05, 0.08, 0.1, 0.12, 0.15, 0.2, 0.25, 0.3, 0.4), False, (0.01, 2.0)),
-    "residual": ((0.05, 0.08, 0.1, 0.12, 0.15, 0.2, 0.25, 0.3, 0.4), False, (0.01, 2.0)),
+    "fixed": ((5, 8, 12, 18, 27, 40, 60, 90, 135, 200, 300), True, (1, 1000)),
+    "threshold": ((0.05, 0.08, 0.12, 0.17, 0.25, 0.35, 0.5, 0.7, 1.0), False, (0.01, 5.0)),
+    "residual": ((0.05, 0.08, 0.12, 0.17, 0.25, 0.35, 0.5, 0.7, 1.0), False, (0.01, 5.0)),
 }
 
 
