@@ -73,11 +73,7 @@ class LookaheadPolicy:
         env = self.env
         if env.system.world.round is not None:  # requests are ignored while a round runs
             return {a: 0 for a in observations}
-        base = self._base_wants(env)
-        if base or self.t % self.decide_every_steps == 0:
-            request = self._plan(env)
-        else:
-            request = base
+        request = self._plan(env) if self.t % self.decide_every_steps == 0 else False
         return {a: int(request) for a in observations}
 
     # -- planning ---------------------------------------------------------------------------------
@@ -109,7 +105,8 @@ class LookaheadPolicy:
         for h in range(self.horizon_steps):
             if not sim.agents:
                 break
-            request = calibrate_now if h == 0 else self._base_wants(sim)
+            # "wait" holds off until the next decision point; both continue with the base heuristic.
+            request = calibrate_now if h == 0 else (h >= self.decide_every_steps and self._base_wants(sim))
             _, rewards, _, _, _ = sim.step({a: int(request) for a in sim.agents})
             total += next(iter(rewards.values()))
         self.simulated_steps += h + 1

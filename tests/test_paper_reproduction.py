@@ -96,13 +96,13 @@ def test_readings_side_by_side_and_which_matches_which(tmp_path):
 
 
 def test_true_anchor_reading_leaves_the_simulation_untouched():
+    from uwb_env.agents.baselines import FixedIntervalPolicy
     from uwb_env.config import EnvConfig
     from uwb_env.env.parallel_env import UWBCalibrationParallelEnv
+    from uwb_env.env.policy import rollout
 
     out = run(seed=2_000_001, steps=25)
     env = UWBCalibrationParallelEnv(EnvConfig.from_dict({**PAPER_SETUP, "max_cycles": 25}))
-    from uwb_env.agents.baselines import FixedIntervalPolicy
-    from uwb_env.env.policy import rollout
 
     plain = rollout(env, FixedIntervalPolicy(10), seed=2_000_001)
     # Same trajectory (a shifted random stream would differ at the first step); sums differ in the last bit.
