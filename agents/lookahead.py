@@ -1,12 +1,18 @@
 """GROUND TRUTH reference schedulers: a lookahead planner on copies of the true system state.
 
 :class:`LookaheadPolicy` is a rollout (policy-improvement) planner over a base heuristic, the
-fixed interval counted from the last calibration. At a decision point it deep-copies the env
+fixed interval counted from the last calibration (give it the tuned interval and a horizon
+about as long). At a decision point it deep-copies the env
 (true robot positions, odometry, running round: everything), gives each copy a generator seeded
-from the planner's *own* generator, and simulates "calibrate now" and "wait" for ``horizon_steps``
-steps, each followed by the base heuristic, over ``n_futures`` sampled futures. Both candidates
-of one future share the seed (common random numbers), so their difference is not noise. It
-picks the candidate with the higher mean env return. The real env's generator is never copied,
+from the planner's *own* generator, and simulates "calibrate now" and "wait" (no request until
+the next decision point), each followed by the base heuristic, over ``n_futures`` sampled
+futures. Both candidates of one future share the seed (common random numbers).
+
+Each branch runs to the end of its first full calibration cycle (until the base heuristic would
+start the branch's second round; at most ``horizon_steps`` steps), and the branches are compared
+by their reward *per step* (the renewal-reward criterion of an average-cost problem): comparing
+totals over one fixed horizon would favour calibrating early, whose benefit lies inside the
+horizon while the later calibration's is cut off. The real env's generator is never copied,
 read or advanced: the copy is made with the real generator pre-mapped to the fresh one.
 
 :class:`ClairvoyantPolicy` is the same planner with one future, *the real one*: its copies carry
@@ -27,18 +33,21 @@ class LookaheadPolicy:
     """See the module docstring.
 
     Args:
-        horizon_steps: simulated steps per candidate.
+        horizon_steps: at most this many simulated steps per candidate (a cycle is cut there).
         n_futures: sampled futures (each simulated once per candidate).
         base_interval_steps: the base heuristic calibrates when this many steps have passed since
             the last calibration; it acts between decisions and in the simulated continuations.
-        decide_every_steps: also plan this often (besides whenever the base wants to calibrate).
+        decide_every_steps: plan this often (default horizon / 15, at least 4); between decision
+            points it does not request. "Wait" means: no request until the next decision point.
     """
 
     uses_ground_truth = True
     clairvoyant = False
 
-    def __init__(self, horizon_steps: int = 30, n_futures: int = 6, base_interval_steps: int = 10,
-                 decide_every_steps: int = 4):
+    def __init__(self, horizon_steps: int = 30, n_futures: int = 8, base_interval_steps: int = 10,
+                 decide_every_steps: int | None = None):
+        if decide_every_steps is None:  # the cost per episode stays ~ 2 * 15 * n_futures * episode length
+            decide_every_steps = max(4, horizon_steps // 15)
         for name, value in (("horizon_steps", horizon_steps), ("n_futures", n_futures),
                             ("base_interval_steps", base_interval_steps), ("decide_every_steps", decide_every_steps)):
             if int(value) != value or value < 1:
@@ -83,11 +92,13 @@ class LookaheadPolicy:
 
     def _plan(self, env) -> bool:
         seeds = self.rng.integers(0, 2**63, self.n_futures)
-        gain = 0.0  # return(calibrate now) - return(wait), summed over futures
+        totals = np.zeros((2, 2))  # [now, wait] x [reward, steps], summed over futures
         for seed in seeds:
-            gain += self._simulate(env, True, seed) - self._simulate(env, False, seed)
-        self.last_gain = gain
-        return gain > 0
+            totals[0] += self._simulate(env, True, seed)
+            totals[1] += self._simulate(env, False, seed)
+        rate = totals[:, 0] / np.maximum(totals[:, 1], 1)
+        self.last_gain = float(rate[0] - rate[1])  # reward per step: calibrate now - wait
+        return self.last_gain > 0
 
     def _clone(self, env, seed):
         # Shared read-only parts are not copied (speed); the real generator maps to a fresh one.
@@ -99,18 +110,22 @@ class LookaheadPolicy:
             raise RuntimeError("lookahead: the copy still draws from the real env's generator")
         return sim
 
-    def _simulate(self, env, calibrate_now: bool, seed) -> float:
+    def _simulate(self, env, calibrate_now: bool, seed) -> tuple[float, int]:
+        """(total reward, steps) of one branch up to the end of its first calibration cycle."""
         sim = self._clone(env, seed)
-        total = 0.0
-        for h in range(self.horizon_steps):
-            if not sim.agents:
-                break
+        total, steps, rounds = 0.0, 0, 0
+        while steps < self.horizon_steps and sim.agents:
             # "wait" holds off until the next decision point; both continue with the base heuristic.
-            request = calibrate_now if h == 0 else (h >= self.decide_every_steps and self._base_wants(sim))
+            request = calibrate_now if steps == 0 else (steps >= self.decide_every_steps and self._base_wants(sim))
+            if request and sim.system.world.round is None:
+                rounds += 1
+                if rounds == 2:  # the next cycle starts: this branch's cycle is complete
+                    break
             _, rewards, _, _, _ = sim.step({a: int(request) for a in sim.agents})
             total += next(iter(rewards.values()))
-        self.simulated_steps += h + 1
-        return total
+            steps += 1
+        self.simulated_steps += steps
+        return total, steps
 
 
 class ClairvoyantPolicy(LookaheadPolicy):

@@ -45,8 +45,8 @@ def main() -> None:
     p.add_argument("--val-seeds", type=int, default=24, help="validation episodes per tuning candidate")
     p.add_argument("--tuned", default=None, help="a `uwb-env tune` result to use instead of tuning here")
     p.add_argument("--learned", default="learned:ppo_scheduler")
-    p.add_argument("--lookahead", default="lookahead:30", help="planner spec; '@K' (its base interval) is "
-                   "set to the tuned fixed interval unless given")
+    p.add_argument("--lookahead", default="lookahead", help="planner spec (default: on the tuned fixed "
+                   "interval K, branches cut at 2.5K steps (60..300): lookahead:2.5K@K)")
     p.add_argument("--config", default=None, help="scenario (YAML/JSON EnvConfig overrides)")
     p.add_argument("--max-cycles", type=int, default=500)
     p.add_argument("--workers", type=int, default=2)
@@ -70,8 +70,10 @@ def main() -> None:
     tune_wall = time.perf_counter() - start
     best = tuned["best_tuned_heuristic"]
     lookahead = a.lookahead
-    if "@" not in lookahead:
-        lookahead += f"@{tuned['tuned']['fixed'].partition(':')[2]}" if "fixed" in tuned["tuned"] else ""
+    if lookahead == "lookahead" and "fixed" in tuned["tuned"]:
+        # The planner improves on the tuned fixed interval K; a branch's cycle lasts up to ~2K steps.
+        k = int(tuned["tuned"]["fixed"].partition(":")[2])
+        lookahead = f"lookahead:{min(max(60, int(2.5 * k)), 300)}@{k}"
     results = evaluate.main(evaluate.Args(
         policies=[a.learned, lookahead], seeds=a.test_seeds, max_cycles=a.max_cycles, config=a.config,
         tuned=tuned_path, workers=a.workers, out=str(out / "eval"), sweep=True, progress=True))
