@@ -35,6 +35,19 @@ def _learned(path: str, dt_s: float):
     return LearnedPolicy.load(path)
 
 
+def _lookahead(param: str | None, clairvoyant: bool):
+    """``lookahead``, ``lookahead:H`` or ``lookahead:H@K`` (horizon H steps, base interval K steps)."""
+    from uwb_env.agents.lookahead import ClairvoyantPolicy, LookaheadPolicy
+
+    horizon, _, base = (param or "").partition("@")
+    kwargs = {}
+    if horizon:
+        kwargs["horizon_steps"] = int(horizon)
+    if base:
+        kwargs["base_interval_steps"] = int(base)
+    return (ClairvoyantPolicy if clairvoyant else LookaheadPolicy)(**kwargs)
+
+
 def _rllib(path: str, dt_s: float):
     from uwb_env.agents.learned_rllib import RLlibPolicy
 
@@ -55,6 +68,10 @@ POLICIES: dict[str, tuple[Callable, str]] = {
     "per_anchor_threshold": (lambda p, dt: _per_anchor_threshold(p), "per-anchor predicted std threshold (m); "
                              "needs action_mode=per_anchor"),
     "oracle": (lambda p, dt: OraclePolicy(float(p or 0.3)), "true mean anchor error threshold (m); GROUND TRUTH"),
+    "lookahead": (lambda p, dt: _lookahead(p, False), "H[@K]: planner over sampled futures, horizon H steps "
+                  "(default 30), base fixed interval K (default 10); GROUND TRUTH"),
+    "clairvoyant": (lambda p, dt: _lookahead(p, True), "H[@K]: the lookahead on the real future's noise; "
+                    "GROUND TRUTH, optimistic bound"),
     "learned": (lambda p, dt: _learned(p, dt), "path of a saved SB3 model (.zip), or a shipped model's name"),
     "rllib": (lambda p, dt: _rllib(p, dt), "path of an RLlib checkpoint folder"),
 }

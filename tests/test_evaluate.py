@@ -27,7 +27,7 @@ def test_registry_builds_every_baseline_and_rejects_bad_specs():
 def test_harness_on_a_tiny_run_writes_sane_files(tmp_path):
     out = tmp_path / "ev"
     args = Args(policies=["fixed:5", "never", "oracle:0.2"], seeds=2, max_cycles=40, sweep=False,
-                workers=1, out=str(out), progress=False)
+                workers=1, out=str(out), progress=False, tuned="none")
     results = main(args)
     rows = {r["policy"]: r for r in results["summary"]}
     assert set(rows) == {"fixed:5", "never", "oracle:0.2"}
@@ -100,3 +100,63 @@ def test_a_model_that_does_not_fit_the_scenario_is_skipped_there_and_refused_alo
     results = main(Args(**base, scenarios=[eight], out=str(tmp_path)))
     assert [r["policy"] for r in results["eight_anchors"]["summary"]] == ["never"]
     assert "skipping learned:ppo_scheduler" in capsys.readouterr().out
+
+
+def test_suite_covers_the_protocol_scenarios_with_disjoint_seed_ranges(tmp_path):
+    from uwb_env.config import EnvConfig
+    from uwb_env.training.suite import load_suite
+
+    suite = load_suite()
+    assert {"paper", "default", "stop_and_go", "harsh_radio", "fast_robots", "low_drift", "dt_0.1",
+            "five_anchors", "eight_anchors", "three_d"} <= set(suite)
+    for name, sc in suite.items():
+        EnvConfig.from_dict({**sc["config"], "max_cycles": sc["max_cycles"]})  # every scenario is a valid config
+        ranges = sorted(sc["seeds"].values())
+        assert all(a[1] < b[0] for a, b in zip(ranges, ranges[1:])), name
+    bad = tmp_path / "bad.yml"
+    bad.write_text("seeds: {training: [0, 10], validation: [5, 20], test: [30, 40]}\nscenarios: {x: {config: {}}}\n")
+    with pytest.raises(ValueError, match="overlap"):
+        load_suite(str(bad))
+
+
+def test_suite_run_writes_tables_and_a_profile(tmp_path, capsys):
+    out = tmp_path / "suite"
+    result = main(Args(policies=["fixed:5", "never"], seeds=3, workers=1, out=str(out), progress=False,
+                       suite="default", suite_scenarios=["default", "five_anchors"]))
+    assert set(result["per_scenario"]) == {"default", "five_anchors"}
+    assert result["per_scenario"]["default"]["seeds"] == [1_000_000, 1_000_001, 1_000_002]
+    for name in ("suite_per_scenario.csv", "suite_aggregate.csv", "performance_profile.png"):
+        assert (out / name).stat().st_size > 100
+    with open(out / "suite_per_scenario.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert {(r["scenario"], r["policy"]) for r in rows} == {(s, p) for s in ("default", "five_anchors")
+                                                             for p in ("fixed:5", "never")}
+    agg = {r["policy"]: r for r in result["aggregate"]}
+    assert agg["fixed:5"]["scenarios"] == 2
+    printed = capsys.readouterr().out
+    assert "== aggregate over scenarios" in printed and "IQM [95% CI]" in printed
+
+
+def test_tuned_heuristics_join_and_the_best_is_the_reference(capsys):
+    from uwb_env.training.evaluate import DEFAULT_TUNED
+    from uwb_env.training.tune import load_tuned
+
+    tuned = load_tuned(str(DEFAULT_TUNED))
+    results = main(Args(policies=["never"], seeds=3, max_cycles=30, sweep=False, workers=1, out=None,
+                        progress=False))
+    rows = {r["policy"]: r for r in results["summary"]}
+    assert set(tuned["tuned"].values()) <= set(rows)
+    assert results["reference"] == tuned["best_tuned_heuristic"] and results["reference_kind"] == "tuned"
+    never = rows["never"]
+    assert never["iqm_tag_error_ci_low_m"] <= never["iqm_tag_error_m"] <= never["iqm_tag_error_ci_high_m"]
+    assert never["vs_reference"] == results["reference"]
+    diff = never["iqm_tag_error_m"] - rows[results["reference"]]["iqm_tag_error_m"]
+    assert never["iqm_diff_vs_reference_m"] == pytest.approx(diff)
+    assert never["significant_vs_reference"] == (not never["iqm_diff_ci_low_m"] <= 0 <= never["iqm_diff_ci_high_m"])
+    printed = capsys.readouterr().out
+    assert f"reference: {results['reference']} (tuned" in printed and "catastr." in printed
+    # Without a tuned file the reference is the best heuristic run, by return, and says so.
+    results = main(Args(policies=["fixed:5", "never", "oracle:0.2"], seeds=2, max_cycles=30, sweep=False,
+                        workers=1, out=None, progress=False, tuned="none"))
+    best = max((r for r in results["summary"] if r["policy"] != "oracle:0.2"), key=lambda r: r["return"])
+    assert results["reference"] == best["policy"] and "untuned" in results["reference_kind"]

@@ -30,13 +30,16 @@ import sys
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 
 import numpy as np
 
 EVAL_SEED_BASE = 1_000_000
-DEFAULT_POLICIES = ("fixed:10", "threshold:0.15", "residual:0.2", "random:0.05", "never", "always", "oracle:0.3")
+DEFAULT_POLICIES = ("fixed:10", "threshold:0.15", "residual:0.2", "never", "oracle:0.3")
 FIXED_SWEEP_STEPS = (5, 7, 10, 15, 20, 30, 45, 70, 100)
-THRESHOLD_SWEEP_M = (0.08, 0.1, 0.12, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5)
+THRESHOLD_SWEEP_M = (0.08, 0.12, 0.2, 0.3, 0.5)
+# Tuned specs of the default scenario (``uwb-env tune --out`` this file to refresh it).
+DEFAULT_TUNED = Path(__file__).with_name("tuned") / "default.json"
 METRICS = ("mean_tag_error_m", "median_tag_error_m", "p95_tag_error_m", "mean_anchor_error_m",
            "calibrations_per_min", "fraction_calibrating", "return")
 
@@ -59,7 +62,7 @@ def default_policies() -> list[str]:
 class Args:
     policies: list[str] = field(default_factory=default_policies)
     """policy specs (see ``agents.registry``)"""
-    seeds: int = 6
+    seeds: int = 30
     """evaluation episodes per policy (seeds EVAL_SEED_BASE + seed_offset + i)"""
     seed_offset: int = 0
     max_cycles: int = 500
@@ -72,10 +75,21 @@ class Args:
     """several scenario files (e.g. training/scenarios/*.yml): each is evaluated into
     ``out/<file stem>/`` and ``out/scenarios.csv`` gathers every summary row; a learned
     policy that does not fit a scenario's observations is left out of it (with a note)"""
+    suite: str | None = None
+    """run the scenario suite (a suite YAML; "default": training/scenarios/suite/suite.yml)
+    with ``seeds`` test seeds per scenario, in parallel; see ``training.suite``"""
+    suite_scenarios: list[str] = field(default_factory=list)
+    """only these scenarios of the suite"""
     skip_incompatible: bool = False
     """leave out (with a note) policies that cannot act in the env instead of failing"""
     workers: int = 1
     """parallel processes (1 = in this process)"""
+    tuned: str | None = None
+    """a ``uwb-env tune`` result: its tuned specs join the policies and its best one is the
+    reference of the paired verdicts (default: training/tuned/default.json for the default
+    scenario; "none" for no file: then the reference is the best heuristic run, untuned)"""
+    reference: str | None = None
+    """the spec every policy is compared with (overrides the tuned file's best)"""
     out: str | None = "runs/evaluate"
     """output folder (None: write nothing)"""
     plots: bool = True
@@ -105,6 +119,8 @@ def run_episode(spec: str, seed: int, config_dict: dict) -> dict:
     config = EnvConfig.from_dict(config_dict)
     env = UWBCalibrationParallelEnv(config)
     policy = _cached_policy(spec, config.sim.dt_s)  # reset() by rollout; a saved model is read once
+    if hasattr(policy, "bind"):  # planners on the true state (lookahead) need the env itself
+        policy.bind(env)
     result = rollout(env, policy, seed=seed)
     return {
         "policy": spec, "seed": seed, "uses_ground_truth": bool(policy.uses_ground_truth),
@@ -123,10 +139,23 @@ def _run_star(job):
     return run_episode(*job)
 
 
+def run_jobs(jobs: list[tuple], workers: int = 1, label: str = "evaluate", show: bool = True) -> list[dict]:
+    """Run ``run_episode(spec, seed, config_dict)`` for every job, in ``workers`` processes."""
+    from uwb_env.progress import progress
+
+    if workers == 1:
+        return [run_episode(*job) for job in progress(jobs, len(jobs), label, enabled=show)]
+    # forkserver, not fork: forking a process that has torch's thread pools running (a
+    # learned policy was loaded, or training just ran) can deadlock the children.
+    context = multiprocessing.get_context("forkserver")
+    with ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
+        it = pool.map(_run_star, jobs, chunksize=max(1, len(jobs) // (8 * workers)))
+        return list(progress(it, len(jobs), label, enabled=show))
+
+
 def evaluate(args: Args) -> dict:
     """Run every policy on every evaluation seed; write the files; return the results."""
     from uwb_env.cli import load_overrides
-    from uwb_env.progress import progress
 
     if args.seeds < 1:
         raise ValueError(f"seeds={args.seeds!r}: must be >= 1")
@@ -134,7 +163,12 @@ def evaluate(args: Args) -> dict:
         raise ValueError(f"workers={args.workers!r}: must be >= 1")
     config = _env_config(load_overrides(args.config), args.max_cycles)
     config_dict = config.to_dict()
-    specs = list(dict.fromkeys(list(args.policies) + (sweep_specs() if args.sweep else [])))
+    tuned = _tuned_record(args)
+    main_specs = list(dict.fromkeys(list(args.policies) + (list(tuned["tuned"].values()) if tuned else [])))
+    reference = args.reference or (tuned["best_tuned_heuristic"] if tuned else None)
+    if reference and reference not in main_specs:
+        main_specs.append(reference)
+    specs = list(dict.fromkeys(main_specs + (sweep_specs() if args.sweep else [])))
     from uwb_env.agents.registry import make_policy
 
     for spec in list(specs):  # fail on a bad spec before any work starts
@@ -147,24 +181,54 @@ def evaluate(args: Args) -> dict:
         specs.remove(spec)
     seeds = [EVAL_SEED_BASE + args.seed_offset + i for i in range(args.seeds)]
     jobs = [(spec, seed, config_dict) for spec in specs for seed in seeds]
-    if args.workers == 1:
-        episodes = [run_episode(*job) for job in progress(jobs, len(jobs), "evaluate", enabled=args.progress)]
-    else:
-        # forkserver, not fork: forking a process that has torch's thread pools running (a
-        # learned policy was loaded, or training just ran) can deadlock the children.
-        context = multiprocessing.get_context("forkserver")
-        with ProcessPoolExecutor(max_workers=args.workers, mp_context=context) as pool:
-            it = pool.map(_run_star, jobs, chunksize=max(1, len(jobs) // (8 * args.workers)))
-            episodes = list(progress(it, len(jobs), "evaluate", enabled=args.progress))
-    summary = summarize(episodes, specs, main=[p for p in args.policies if p in specs])
+    episodes = run_jobs(jobs, args.workers, "evaluate", args.progress)
+    main_specs = [p for p in main_specs if p in specs]
+    if reference is None:
+        from uwb_env.training.protocol import best_heuristic
+
+        reference = best_heuristic(summarize(episodes, specs, main_specs, statistics=False), main_specs)
+    summary = summarize(episodes, specs, main=main_specs, reference=reference if len(seeds) > 1 else None)
     results = {"summary": summary, "episodes": episodes, "seeds": seeds, "config": config_dict,
-               "dt_s": config.sim.dt_s}
+               "dt_s": config.sim.dt_s, "reference": reference,
+               "reference_kind": "tuned" if tuned and reference == tuned["best_tuned_heuristic"] else
+               "given" if args.reference else "best heuristic run (untuned)",
+               "tuned_file": tuned.get("path") if tuned else None,
+               "matched_budget": _matched_budgets(episodes, main_specs) if args.sweep and len(seeds) > 1 else {}}
     if args.out:
         write_outputs(results, args.out, plots=args.plots)
     return results
 
 
-def summarize(episodes: list[dict], specs: Sequence[str], main: Sequence[str]) -> list[dict]:
+def _tuned_record(args: Args) -> dict | None:
+    from uwb_env.training.tune import load_tuned
+
+    path = args.tuned
+    if path is None and args.config is None and DEFAULT_TUNED.is_file():
+        path = str(DEFAULT_TUNED)
+    if path is None or path == "none":
+        return None
+    return {**load_tuned(path), "path": path}
+
+
+def _matched_budgets(episodes: list[dict], main_specs: Sequence[str]) -> dict[str, dict]:
+    """Each learned policy's budget matched on the fixed-interval sweep (IQM, with CI)."""
+    from uwb_env.training.protocol import matched_budget
+
+    out = {}
+    for spec in main_specs:
+        if spec.partition(":")[0] in ("learned", "rllib"):
+            est = matched_budget(episodes, spec)
+            if est is not None:
+                out[spec] = {"fixed_iqm_at_matched_rate_m": est.value, "ci_low_m": est.ci_low, "ci_high_m": est.ci_high}
+    return out
+
+
+def summarize(episodes: list[dict], specs: Sequence[str], main: Sequence[str], reference: str | None = None,
+              statistics: bool = True) -> list[dict]:
+    """Per policy: means over seeds, plus (``statistics``) the protocol's statistics with CIs
+    and, given a ``reference`` spec, the paired verdict against it."""
+    from uwb_env.training.protocol import paired, policy_statistics
+
     rows = []
     for spec in specs:
         mine = [e for e in episodes if e["policy"] == spec]
@@ -174,11 +238,23 @@ def summarize(episodes: list[dict], specs: Sequence[str], main: Sequence[str]) -
             row[m] = float(np.mean([e[m] for e in mine]))
         tag = np.array([e["mean_tag_error_m"] for e in mine])
         row["mean_tag_error_sem_m"] = float(tag.std(ddof=1) / np.sqrt(len(tag))) if len(tag) > 1 else 0.0
+        if statistics:
+            row.update(policy_statistics(episodes, spec))
+            if reference is not None and row["group"] == "main":
+                row.update(paired(episodes, spec, reference))
         rows.append(row)
     return rows
 
 
 def format_table(summary: list[dict], only_main: bool = True) -> str:
+    if summary and "iqm_tag_error_m" in summary[0]:
+        from uwb_env.training.protocol import format_comparison
+
+        return format_comparison(summary, only_main)
+    return _format_means(summary, only_main)
+
+
+def _format_means(summary: list[dict], only_main: bool = True) -> str:
     cols = [("policy", "policy", "{}"), ("mean_tag_error_m", "tag mean", "{:.3f}"),
             ("median_tag_error_m", "tag med", "{:.3f}"), ("p95_tag_error_m", "tag p95", "{:.3f}"),
             ("mean_anchor_error_m", "anchor", "{:.3f}"), ("calibrations_per_min", "cal/min", "{:.1f}"),
@@ -214,8 +290,9 @@ def write_outputs(results: dict, out: str, plots: bool = True) -> list[str]:
     written.append(sum_csv)
     sum_json = os.path.join(out, "summary.json")
     with open(sum_json, "w") as f:
-        json.dump({"summary": results["summary"], "seeds": results["seeds"], "config": results["config"]}, f,
-                  indent=2)
+        json.dump({"summary": results["summary"], "seeds": results["seeds"], "config": results["config"],
+                   **{k: results.get(k) for k in ("reference", "reference_kind", "tuned_file", "matched_budget")}},
+                  f, indent=2)
     written.append(sum_json)
     if plots:
         written += write_plots(results, out)
@@ -292,7 +369,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", default=None, help="YAML/JSON file with EnvConfig overrides")
     p.add_argument("--scenarios", nargs="+", default=[], help="several scenario files (e.g. "
                    "training/scenarios/*.yml), each evaluated into OUT/<stem>/")
+    p.add_argument("--suite", nargs="?", const="default", default=None, metavar="SUITE_YML",
+                   help="run the scenario suite (default training/scenarios/suite/suite.yml): per-scenario and "
+                   "aggregate tables and a performance profile in OUT")
+    p.add_argument("--suite-scenarios", nargs="+", default=[], metavar="NAME", help="only these suite scenarios")
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="parallel processes")
+    p.add_argument("--tuned", default=None, help="a `uwb-env tune` result file: adds the tuned heuristics and "
+                   "compares every policy with the best of them (default: the shipped tuning of the default "
+                   "scenario when --config is not given; 'none' for none)")
+    p.add_argument("--reference", default=None, help="compare every policy with this spec instead")
     p.add_argument("--out", default=d.out, help=f"output folder (default {d.out})")
     p.add_argument("--no-plots", dest="plots", action="store_false")
     p.add_argument("--quiet", dest="progress", action="store_false", help="no progress bar")
@@ -306,13 +391,39 @@ def args_from_namespace(ns: argparse.Namespace) -> Args:
 
 
 def main(args: Args) -> dict:
+    if args.suite:
+        from uwb_env.training.suite import format_suite, run_suite
+
+        result = run_suite(list(args.policies), args.seeds, args.workers, args.out,
+                           None if args.suite == "default" else args.suite, args.suite_scenarios or None,
+                           plots=args.plots, show=args.progress)
+        print(format_suite(result))
+        if args.out:
+            print(f"wrote {args.out}/ (suite_per_scenario.csv, suite_aggregate.csv, <scenario>/"
+                  f"{', performance_profile.png' if args.plots else ''})")
+        return result
     if args.scenarios:
         return evaluate_scenarios(args)
     results = evaluate(args)
     print(format_table(results["summary"]))
+    print(describe_reference(results))
     if args.out:
         print(f"wrote {args.out}/ (episodes.csv, summary.csv, summary.json{', plots' if args.plots else ''})")
     return results
+
+
+def describe_reference(results: dict) -> str:
+    lines = []
+    if results.get("reference"):
+        lines.append(f"reference: {results['reference']} ({results['reference_kind']}"
+                     + (f", from {results['tuned_file']})" if results.get("tuned_file") else ")"))
+    for spec, m in (results.get("matched_budget") or {}).items():
+        rate = next(r["calibrations_per_min"] for r in results["summary"] if r["policy"] == spec)
+        lines.append(f"matched budget: the fixed-interval curve at {spec}'s {rate:.1f} cal/min has IQM "
+                     f"{m['fixed_iqm_at_matched_rate_m']:.3f} m [{m['ci_low_m']:.3f}, {m['ci_high_m']:.3f}]")
+    seeds = results["seeds"]
+    lines.append(f"test seeds {seeds[0]}..{seeds[-1]} ({len(seeds)} per policy)")
+    return "\n".join(lines)
 
 
 def evaluate_scenarios(args: Args) -> dict:

@@ -62,6 +62,19 @@ def _evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _tune_args(p: argparse.ArgumentParser) -> None:
+    from uwb_env.training.tune import add_arguments
+
+    add_arguments(p)
+
+
+def _tune(args: argparse.Namespace) -> int:
+    from uwb_env.training.tune import args_from_namespace, main
+
+    main(args_from_namespace(args))
+    return 0
+
+
 def _train_args(p: argparse.ArgumentParser) -> None:
     from uwb_env.training.train import add_arguments
 
@@ -147,6 +160,7 @@ def _emulate(args: argparse.Namespace) -> int:
 COMMANDS = {
     "simulate": (_simulate_args, _simulate, "run the simulator and print a drift/ranging summary"),
     "evaluate": (_evaluate_args, _evaluate, "compare calibration schedulers over held-out seeds"),
+    "tune": (_tune_args, _tune, "tune the heuristic schedulers' parameters on validation seeds"),
     "train": (_train_args, _train, "train a scheduler with stable-baselines3 (PPO/A2C/DQN)"),
     "emulate": (_emulate_args, _emulate, "serve emulated DWM1001 devices on pseudo-terminals or sockets"),
 }

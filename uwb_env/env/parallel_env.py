@@ -129,6 +129,20 @@ class UWBCalibrationParallelEnv(ParallelEnv, EzPickle):
         self._renderer = None
         self.history: dict[str, list[float]] = {}
 
+    # EzPickle's state is only the constructor's arguments, so copy.deepcopy and pickle gave a
+    # fresh, un-reset env. A simulated env copies its whole state instead (mid-episode copies
+    # continue identically, generator included); one on hardware still rebuilds from arguments.
+    def __getstate__(self):
+        if not self.deterministic:
+            return EzPickle.__getstate__(self)
+        return {k: v for k, v in self.__dict__.items() if k != "_renderer"} | {"_renderer": None}
+
+    def __setstate__(self, state):
+        if "system" not in state:  # the arguments only (an env on hardware)
+            EzPickle.__setstate__(self, state)
+        else:
+            self.__dict__.update(state)
+
     def observation_space(self, agent: str) -> spaces.Space:
         return self.observation_spaces[agent]
 
