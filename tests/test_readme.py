@@ -2,10 +2,11 @@
 this keeps that wiring from being dropped and lets only hardware blocks opt out."""
 
 import re
+from pathlib import Path
+
 import pytest
 
 tomllib = pytest.importorskip("tomllib")  # Python >= 3.11
-from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 

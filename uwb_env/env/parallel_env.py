@@ -73,7 +73,7 @@ dict; read them from any one agent.
 | ``calibration_failed`` | bool | the last round failed (the reason: ``env.calibration_error``, "" otherwise) |
 | ``requests_ignored`` | int | requests made while a round ran |
 | ``round_anchor`` | int | anchor of a per-anchor round that started, -1 otherwise |
-| ``reward_tag_error``, ``reward_anchor_error``, ``reward_calibration_time``, ``reward_calibration_start`` | float | the reward's terms (0 at reset) |
+| ``reward_`` + ``tag_error``, ``anchor_error``, ``calibration_time``, ``calibration_start`` | float | (0 at reset) |
 | ``ground_truth`` | bool | False on hardware (truth-based keys are NaN) |
 
 ## Starting state
