@@ -3,7 +3,7 @@
 import gymnasium
 import numpy as np
 import pytest
-from pettingzoo.test import api_test, max_cycles_test, parallel_api_test, parallel_seed_test, render_test
+from pettingzoo.test import api_test, max_cycles_test, parallel_api_test, parallel_seed_test, render_test, seed_test
 
 import uwb_env
 from uwb_env import uwb_calibration_v0
@@ -16,6 +16,7 @@ def test_pettingzoo_api_tests():
 
 def test_pettingzoo_seed_and_max_cycles_tests():
     parallel_seed_test(lambda: uwb_calibration_v0.parallel_env(max_cycles=20), num_cycles=20)
+    seed_test(lambda: uwb_calibration_v0.env(max_cycles=20), num_cycles=20)
     max_cycles_test(uwb_calibration_v0)
 
 
