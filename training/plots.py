@@ -79,8 +79,8 @@ def _error_over_time(plt, main, traces, dt, out) -> str:
     # Small multiples with one shared y axis: one policy per panel, the median over seeds
     # (rolling median over SMOOTH_S) and the band between the seeds' quartiles.
     n = len(main)
-    cols = min(4, n)
-    rows = -(-n // cols)
+    rows = -(-n // 4)
+    cols = -(-n // rows)  # balanced: 5 panels as 3 + 2, not 4 + 1
     fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 2.4 * rows), sharex=True, sharey=True, squeeze=False)
     window = max(int(round(SMOOTH_S / dt)), 1)
     for ax, r in zip(axes.ravel(), main, strict=False):
@@ -91,11 +91,14 @@ def _error_over_time(plt, main, traces, dt, out) -> str:
         ax.plot(t, med, color="tab:blue", lw=1.2)
         ax.set_title(short_label(r["policy"]) + (" (GT)" if r["uses_ground_truth"] else ""), fontsize=9)
         ax.grid(alpha=0.3)
-    for ax in axes.ravel()[n:]:
+    for k, ax in enumerate(axes.ravel()[n:], start=n):
         ax.set_visible(False)
+        above = axes.ravel()[k - cols]  # the panel above an empty slot is the last of its column
+        above.xaxis.set_tick_params(labelbottom=True)
+        above.set_xlabel("time (s)")
     axes[0, 0].set_yscale("log")
     _plain_log_axis(axes[0, 0].yaxis)
-    for ax in axes[-1]:
+    for ax in axes[-1][: n - cols * (rows - 1)]:
         ax.set_xlabel("time (s)")
     for ax in axes[:, 0]:
         ax.set_ylabel("tag error (m)")
