@@ -38,7 +38,8 @@ def _learned(path: str, dt_s: float):
 def _rllib(path: str, dt_s: float):
     from uwb_env.agents.learned_rllib import RLlibPolicy
 
-    return RLlibPolicy.load(path)
+    # Ray restores checkpoints from URIs: a relative path has no scheme ("URI has empty scheme")
+    return RLlibPolicy.load(str(Path(path).expanduser().resolve()))
 
 
 # name -> (factory(parameter string or None, dt_s), parameter meaning)

@@ -20,8 +20,9 @@ from benchmarks._common import print_table, write_results  # noqa: E402
 
 
 def direct_env_steps_per_s(steps: int) -> float:
-    import uwb_env
     from uwb_env.agents.baselines import NeverPolicy
+
+    import uwb_env
     from uwb_env.env.policy import rollout
 
     env = uwb_env.parallel_env(max_cycles=steps)
@@ -46,7 +47,6 @@ def main() -> None:
     p.add_argument("--quick", action="store_true")
     a = p.parse_args()
     import ray
-
     from uwb_env.training.sweep_tune import Args as SweepArgs
     from uwb_env.training.sweep_tune import main as sweep
 

@@ -1,7 +1,5 @@
 import numpy as np
 import pytest
-
-import uwb_env
 from uwb_env.agents import (
     AlwaysPolicy,
     FixedIntervalPolicy,
@@ -11,6 +9,8 @@ from uwb_env.agents import (
     ResidualTriggerPolicy,
     UncertaintyThresholdPolicy,
 )
+
+import uwb_env
 from uwb_env.env import CalibrationPolicy, rollout
 
 

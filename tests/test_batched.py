@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
-
 from uwb_env.agents.baselines import FixedIntervalPolicy
+
 from uwb_env import parallel_env
 from uwb_env.batch import BatchedSystem
 from uwb_env.config import EnvConfig
@@ -35,7 +35,7 @@ def test_batched_statistics_match_the_single_env():
 
 
 def test_vector_env_spaces_autoreset_and_seeding():
-    venv = CalibrationSchedulingVectorEnv(4, max_cycles=6)
+    venv = CalibrationSchedulingVectorEnv(4, max_cycles=6, autoreset_mode="SameStep")
     obs, _ = venv.reset(seed=3)
     assert obs.dtype == np.float32 and venv.observation_space.contains(obs)
     for t in range(6):
@@ -74,3 +74,25 @@ def test_sb3_adapter_reports_truncation():
         obs, rewards, dones, infos = venv.step(np.zeros(5, dtype=int))
     assert dones.all() and all(i["TimeLimit.truncated"] for i in infos)
     assert all(venv.observation_space.contains(i["terminal_observation"]) for i in infos)
+
+
+def test_next_step_autoreset_is_the_default_and_gymnasium_wrappers_work():
+    import gymnasium
+    from gymnasium.vector import AutoresetMode
+    from gymnasium.wrappers.vector import RecordEpisodeStatistics, TransformObservation
+
+    import uwb_env  # noqa: F401  (registration)
+
+    venv = gymnasium.make_vec("uwb_env/CalibrationScheduling-v0", num_envs=3, vectorization_mode="vector_entry_point",
+                              max_cycles=5)
+    assert isinstance(venv.unwrapped, CalibrationSchedulingVectorEnv)
+    assert venv.metadata["autoreset_mode"] == AutoresetMode.NEXT_STEP
+    venv = TransformObservation(RecordEpisodeStatistics(venv), lambda o: o * 2.0, venv.observation_space)
+    obs, _ = venv.reset(seed=[1, 2, 3])
+    for _ in range(5):
+        last, reward, term, trunc, info = venv.step(np.ones(3, dtype=int))
+    assert trunc.all() and "episode" in info and np.allclose(info["episode"]["l"], 5)
+    first, reward, term, trunc, info = venv.step(np.ones(3, dtype=int))  # the reset step
+    assert not trunc.any() and (reward == 0).all() and not np.array_equal(first, last)
+    with pytest.raises(ValueError, match="seed"):
+        venv.reset(seed=[1, 2])

@@ -1,6 +1,8 @@
 import json
 
-from uwb_env.cli import main
+import pytest
+
+from uwb_env.cli import check_policies, main
 
 
 def test_simulate_prints_a_summary(capsys):
@@ -33,15 +35,8 @@ def test_emulate_prints_the_port_names(capsys):
     assert "anchor" in out and "/dev/pts/" in out and "tag_2" in out
 
 
-import pytest  # noqa: E402
-
-from uwb_env.cli import check_policies  # noqa: E402
-
-
 @pytest.mark.parametrize(("argv", "names"), [
     (["evaluate", "--policies", "learned:nope.zip", "--seeds", "1"], "--policies learned:nope.zip"),
-    (["evaluate", "--policies", "fixed:abc", "--seeds", "1"], "--policies fixed:abc"),
-    (["evaluate", "--config", "missing.yml"], "--config missing.yml"),
     (["simulate", "--config", "missing.yml"], "--config missing.yml"),
     (["train", "--env-config", "missing.yml"], "--env-config missing.yml"),
 ])
@@ -78,3 +73,22 @@ def test_train_help_names_the_rllib_backend_and_defaults(capsys):
         main(["train", "--help"])
     out = capsys.readouterr().out
     assert "rllib" in out and "Ray RLlib" in out and "(default: 200000)" in out and "(default: ppo)" in out
+@pytest.mark.parametrize(
+    "argv, needle",
+    [
+        (["evaluate", "--policies", "learned:nope.zip", "--seeds", "1"], "nope.zip"),
+        (["evaluate", "--config", "missing.yml", "--seeds", "1"], "--config missing.yml"),
+        (["evaluate", "--policies", "fixed:abc", "--seeds", "1"], "fixed:abc"),
+        (["train", "--hp", "learning_rat=1e-4", "--total-timesteps", "64"], "learning_rat"),
+    ],
+)
+def test_cli_mistakes_print_one_line_naming_the_argument_and_exit_2(argv, needle, tmp_path, capsys, monkeypatch):
+    from uwb_env.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    if argv[0] == "train":
+        argv = [*argv, "--out", str(tmp_path / "run")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and needle in err
+    assert not (tmp_path / "run").exists()  # nothing half-written

@@ -3,9 +3,9 @@ import json
 
 import numpy as np
 import pytest
-
 from uwb_env.agents.registry import POLICIES, PolicySpecError, make_policy
 from uwb_env.training.evaluate import EVAL_SEED_BASE, Args, format_table, main, sweep_specs
+
 from uwb_env.cli import main as cli_main
 
 

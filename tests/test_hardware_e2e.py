@@ -5,9 +5,9 @@ import time
 
 import numpy as np
 import pytest
+from uwb_env.agents.baselines import FixedIntervalPolicy
 
 import uwb_env
-from uwb_env.agents.baselines import FixedIntervalPolicy
 from uwb_env.config import EnvConfig
 from uwb_env.env.policy import rollout
 from uwb_env.hardware.backend import HardwareConfig, connect

@@ -1,7 +1,8 @@
 """The install puts nothing but the project's namespace into site-packages."""
 
-import tomllib
 from pathlib import Path
+
+import tomllib
 
 ROOT = Path(__file__).resolve().parents[1]
 

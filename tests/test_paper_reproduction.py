@@ -1,7 +1,6 @@
 import json
 
 import numpy as np
-
 from uwb_env.training.paper_data import extract, load_reference, parse_boxplots, parse_series
 from uwb_env.training.reproduce_paper import PAPER_SETUP, box_stats, run
 

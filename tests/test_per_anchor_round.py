@@ -1,10 +1,10 @@
 """The per_anchor action mode: one anchor re-locates against the others."""
 
 import numpy as np
-
-from uwb_env import parallel_env
 from uwb_env.agents.per_anchor import PerAnchorThresholdPolicy
 from uwb_env.agents.registry import make_policy
+
+from uwb_env import parallel_env
 from uwb_env.env.policy import rollout
 
 

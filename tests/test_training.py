@@ -9,6 +9,7 @@ from uwb_env.agents.learned import LearnedPolicy  # noqa: E402
 from uwb_env.agents.registry import make_policy  # noqa: E402
 from uwb_env.training.train import Args, latest_checkpoint, load_hyperparams, main  # noqa: E402
 from uwb_env.training.vec_env import ParallelEnvVecEnv  # noqa: E402
+
 from uwb_env import parallel_env  # noqa: E402
 from uwb_env.env.policy import rollout  # noqa: E402
 

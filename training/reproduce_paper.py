@@ -65,6 +65,7 @@ class Args:
 def run(seed: int, steps: int) -> dict[str, np.ndarray]:
     """One run; per step: anchors 1..N-1 error, tag errors, signed x-axis rotation error."""
     from uwb_env.agents.baselines import FixedIntervalPolicy
+
     from uwb_env.config import EnvConfig
     from uwb_env.env.parallel_env import UWBCalibrationParallelEnv
 
@@ -111,6 +112,7 @@ def box_stats(values: np.ndarray) -> dict[str, float]:
 
 def main(args: Args) -> dict:
     from uwb_env.training.paper_data import load_reference
+
     from uwb_env.progress import progress
 
     runs, steps = (6, 120) if args.quick else (args.runs, args.steps)

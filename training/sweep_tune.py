@@ -23,7 +23,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-
 from uwb_env.training.hyperparams_io import parse_value
 
 
@@ -45,7 +44,6 @@ class Args:
 
 def _harness_trial(config: dict) -> None:
     from ray import tune
-
     from uwb_env.training.evaluate import run_episode
 
     episodes = [run_episode(config["spec"], seed, config["env_config"]) for seed in config["seeds"]]
@@ -58,7 +56,6 @@ def _harness_trial(config: dict) -> None:
 
 def _sb3_trial(config: dict) -> None:
     from ray import tune
-
     from uwb_env.training import train
 
     hp = [f"{k}={v}" for k, v in config["hp"].items()]
@@ -73,8 +70,8 @@ def _sb3_trial(config: dict) -> None:
 def main(args: Args) -> dict:
     import ray
     from ray import tune
-
     from uwb_env.training import evaluate
+
     from uwb_env.cli import load_overrides
 
     if args.kind not in ("harness", "sb3"):

@@ -125,7 +125,8 @@ def _check_hyperparams(algo_cls, hp: dict) -> None:
     for key in sorted(set(hp) - accepted):
         close = difflib.get_close_matches(key, sorted(accepted), n=1)
         hint = f"; did you mean {close[0]}?" if close else f"; known: {', '.join(sorted(accepted))}"
-        raise ValueError(f"--hp {key}={hp[key]}: not a {algo_cls.__name__} hyperparameter{hint}")
+        raise ValueError(f"--hp {key}={hp[key]} (or the hyperparameters YAML): not a {algo_cls.__name__} "
+                         f"hyperparameter{hint}")
 
 
 def latest_checkpoint(folder: Path) -> tuple[Path, int] | None:

@@ -104,7 +104,8 @@ class BatchedSchedulerVecEnv(VecEnv):
     def __init__(self, num_envs: int, env_config: dict | None = None):
         from uwb_env.env.vector_env import CalibrationSchedulingVectorEnv
 
-        self.venv = CalibrationSchedulingVectorEnv(num_envs, config=env_config)
+        # SB3 wants the terminal observation beside the reset one: SAME_STEP
+        self.venv = CalibrationSchedulingVectorEnv(num_envs, config=env_config, autoreset_mode="SameStep")
         super().__init__(num_envs, self.venv.single_observation_space, self.venv.single_action_space)
         self._actions = None
 

@@ -26,6 +26,7 @@ def _register() -> None:
         gymnasium.register(
             id="uwb_env/CalibrationScheduling-v0",
             entry_point="uwb_env.env.scheduler_env:CalibrationSchedulingEnv",
+            vector_entry_point="uwb_env.env.vector_env:CalibrationSchedulingVectorEnv",
         )
 
 

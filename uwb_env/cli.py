@@ -13,21 +13,21 @@ class ArgumentError(ValueError):
     """A command-line argument that cannot work: printed as one line naming it, exit status 2."""
 
 
-def load_overrides(path: str | None, flag: str = "--config") -> dict:
+def load_overrides(path: str | None, option: str = "--config") -> dict:
     """Read a YAML/JSON mapping of config overrides (``None`` -> empty)."""
     if path is None:
         return {}
     import yaml
 
     if not Path(path).is_file():
-        raise ArgumentError(f"{flag} {path}: no such file")
+        raise ArgumentError(f"{option} {path}: no such file")
     with open(path) as f:
         try:
             data = yaml.safe_load(f) or {}
         except yaml.YAMLError as err:
-            raise ArgumentError(f"{flag} {path}: not YAML/JSON ({str(err).splitlines()[0]})") from err
+            raise ArgumentError(f"{option} {path}: not YAML/JSON ({str(err).splitlines()[0]})") from err
     if not isinstance(data, dict):
-        raise ArgumentError(f"{flag} {path}: expected a mapping at the top level")
+        raise ArgumentError(f"{option} {path}: expected a mapping at the top level")
     return data
 
 
@@ -217,8 +217,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ConfigError as err:
         print(f"uwb-env {args.command}: invalid configuration: {err}", file=sys.stderr)
         return 2
-    except (ValueError, FileNotFoundError) as err:  # bad policy spec, count, --hp key, missing file
-        print(f"uwb-env {args.command}: {err}", file=sys.stderr)
+    except (ValueError, FileNotFoundError, IsADirectoryError, PermissionError) as err:
+        # a bad policy spec, count, file or hyperparameter: one clear line, no traceback
+        text = err.strerror + f": {err.filename!r}" if isinstance(err, OSError) and err.filename else str(err)
+        print(f"uwb-env {args.command}: error: {text}", file=sys.stderr)
         return 2
 
 

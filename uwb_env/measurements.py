@@ -60,7 +60,8 @@ class RangeMatrix:
         bad_mean = measured & ~np.isfinite(mean)
         if bad_mean.any():
             i, j = np.argwhere(bad_mean)[0]
-            raise InvalidRangeError(f"RangeMatrix.mean_m[{i}, {j}] = {mean[i, j]!r} with count {count[i, j]}: not finite")
+            raise InvalidRangeError(
+                f"RangeMatrix.mean_m[{i}, {j}] = {mean[i, j]!r} with count {count[i, j]}: not finite")
         bad_std = measured & ~(std >= 0) | (measured & np.isinf(std))
         if bad_std.any():
             i, j = np.argwhere(bad_std)[0]
@@ -173,6 +174,7 @@ def pool_rounds(a: RangeMatrix, b: RangeMatrix) -> RangeMatrix:
     with np.errstate(divide="ignore", invalid="ignore"):
         mean = np.where(count > 0, (ca * ma + cb * mb) / count, np.nan)
         sa, sb = np.where(ca > 0, np.nan_to_num(a.std_m), 0.0), np.where(cb > 0, np.nan_to_num(b.std_m), 0.0)
-        ss = np.maximum(ca - 1, 0) * sa**2 + np.maximum(cb - 1, 0) * sb**2 + ca * (ma - mean) ** 2 + cb * (mb - mean) ** 2
+        ss = (np.maximum(ca - 1, 0) * sa**2 + np.maximum(cb - 1, 0) * sb**2
+              + ca * (ma - mean) ** 2 + cb * (mb - mean) ** 2)
         std = np.where(count > 0, np.sqrt(ss / np.maximum(count - 1, 1)), np.nan)
     return RangeMatrix(mean, std, count.astype(int))

@@ -10,8 +10,9 @@ import pytest
 
 ray = pytest.importorskip("ray", reason="the 'cluster' extra is not installed")
 
-import uwb_env  # noqa: E402
 from uwb_env.agents.registry import make_policy  # noqa: E402
+
+import uwb_env  # noqa: E402
 from uwb_env.env.policy import rollout  # noqa: E402
 
 TINY = ["train_batch_size_per_learner=200", "minibatch_size=100", "num_epochs=1"]

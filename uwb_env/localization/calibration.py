@@ -233,7 +233,8 @@ def calibrate_anchors(
         if not candidates[0].fit_ok or candidates[0].max_z > restart_sigmas:
             # A prior far off (long drift) can sit in the basin of a folded shape (one anchor
             # mirrored across a line through two others). Restart from the ranges alone.
-            candidates += problem.solve_starts(refs, [("prior+" + name, x) for name, x in _cold_starts(problem, "auto")])
+            cold = [("prior+" + name, x) for name, x in _cold_starts(problem, "auto")]
+            candidates += problem.solve_starts(refs, cold)
     if prior is not None and prior_std_m is not None:
         std = np.broadcast_to(np.asarray(prior_std_m, dtype=float), (n,))
         if not np.all(np.isfinite(std) & (std > 0)):
