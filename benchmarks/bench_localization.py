@@ -30,8 +30,8 @@ from pathlib import Path
 for _v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_v, "1")
 
-import numpy as np
-from scipy.optimize import least_squares
+import numpy as np  # noqa: E402 (after the BLAS thread setting)
+from scipy.optimize import least_squares  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import interleaved_median_times_s, median_time_s, print_table, write_results  # noqa: E402
@@ -198,7 +198,8 @@ def main(argv=None) -> dict:
     fig["rmse_over_crlb_default_worst"] = worst_ratio
     fig["rounds_over_10x_total"] = worst_over
     print_table(f"Default call calibrate_anchors(rm): sigma={SIGMA:.4f} m (targets ratio <= 1.05, 0 rounds >= 10x)",
-                ["case", "trials", "RMSE/sqrt(CRLB)", "rounds >= 10x", "wrong & converged & not ambiguous rate", "error rate"], rows)
+                ["case", "trials", "RMSE/sqrt(CRLB)", "rounds >= 10x", "wrong & converged & not ambiguous rate",
+                 "error rate"], rows)
 
     rows = []
     for n in (8, 16):

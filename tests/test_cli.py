@@ -2,7 +2,7 @@ import json
 
 import pytest
 
-from uwb_env.cli import main
+from uwb_env.cli import check_policies, main
 
 
 def test_simulate_prints_a_summary(capsys):
@@ -35,6 +35,44 @@ def test_emulate_prints_the_port_names(capsys):
     assert "anchor" in out and "/dev/pts/" in out and "tag_2" in out
 
 
+@pytest.mark.parametrize(("argv", "names"), [
+    (["evaluate", "--policies", "learned:nope.zip", "--seeds", "1"], "--policies learned:nope.zip"),
+    (["simulate", "--config", "missing.yml"], "--config missing.yml"),
+    (["train", "--env-config", "missing.yml"], "--env-config missing.yml"),
+])
+def test_cli_mistakes_are_one_line_naming_the_argument(argv, names, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and names in err, err
+
+
+def test_unknown_hyperparameter_is_one_line_and_leaves_no_folder(capsys, tmp_path):
+    pytest.importorskip("stable_baselines3")
+    out = tmp_path / "run"
+    assert main(["train", "--hp", "learning_rat=1e-4", "--total-timesteps", "64", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "--hp learning_rat" in err and "learning_rate" in err
+    assert not out.exists()
+
+
+def test_rllib_policy_paths_are_resolved_to_absolute(tmp_path, monkeypatch):
+    # Ray reads a relative checkpoint path as a URI without a scheme: the CLI hands it an absolute one
+    import uwb_env.agents.registry as registry
+
+    seen = []
+    monkeypatch.setattr(registry, "make_policy", lambda spec, *a: seen.append(spec))
+    monkeypatch.chdir(tmp_path)
+    assert check_policies(["rllib:runs/rllib/checkpoint", "fixed:10"]) == [
+        f"rllib:{tmp_path.resolve()}/runs/rllib/checkpoint", "fixed:10"]
+    assert seen[0] == f"rllib:{tmp_path.resolve()}/runs/rllib/checkpoint"
+
+
+def test_train_help_names_the_rllib_backend_and_defaults(capsys):
+    with pytest.raises(SystemExit):
+        main(["train", "--help"])
+    out = capsys.readouterr().out
+    assert "rllib" in out and "Ray RLlib" in out and "(default: 200000)" in out and "(default: ppo)" in out
 @pytest.mark.parametrize(
     "argv, needle",
     [

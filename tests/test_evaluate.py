@@ -103,8 +103,9 @@ def test_a_model_that_does_not_fit_the_scenario_is_skipped_there_and_refused_alo
 
 
 def test_suite_covers_the_protocol_scenarios_with_disjoint_seed_ranges(tmp_path):
-    from uwb_env.config import EnvConfig
     from uwb_env.training.suite import load_suite
+
+    from uwb_env.config import EnvConfig
 
     suite = load_suite()
     assert {"paper", "default", "stop_and_go", "harsh_radio", "fast_robots", "low_drift", "dt_0.1",
@@ -112,7 +113,7 @@ def test_suite_covers_the_protocol_scenarios_with_disjoint_seed_ranges(tmp_path)
     for name, sc in suite.items():
         EnvConfig.from_dict({**sc["config"], "max_cycles": sc["max_cycles"]})  # every scenario is a valid config
         ranges = sorted(sc["seeds"].values())
-        assert all(a[1] < b[0] for a, b in zip(ranges, ranges[1:])), name
+        assert all(a[1] < b[0] for a, b in zip(ranges, ranges[1:], strict=False)), name
     bad = tmp_path / "bad.yml"
     bad.write_text("seeds: {training: [0, 10], validation: [5, 20], test: [30, 40]}\nscenarios: {x: {config: {}}}\n")
     with pytest.raises(ValueError, match="overlap"):

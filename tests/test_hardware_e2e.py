@@ -106,7 +106,7 @@ def test_unplug_mid_round_then_replug_the_episode_continues(tmp_path):
             if step == 4:  # the first round is running: pull the anchor's plug for 0.6 s
                 threading.Thread(target=emu.ports["anchor"].unplug, args=(0.6,)).start()
             if info["calibration_failed"]:
-                failed.append(info["calibration_error"])
+                failed.append(env.calibration_error)
             if info["round_finished"] and not info["calibration_failed"]:
                 finished.append(step)
             step += 1

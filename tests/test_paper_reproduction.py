@@ -96,6 +96,7 @@ def test_readings_side_by_side_and_which_matches_which(tmp_path):
 
 def test_true_anchor_reading_leaves_the_simulation_untouched():
     from uwb_env.agents.baselines import FixedIntervalPolicy
+
     from uwb_env.config import EnvConfig
     from uwb_env.env.parallel_env import UWBCalibrationParallelEnv
     from uwb_env.env.policy import rollout

@@ -130,3 +130,83 @@ def test_hp_overrides_keep_numbers_numbers():
     hp = load_hyperparams(Args(hp=["learning_rate=1e-4", "policy_kwargs={net_arch: [32]}", "normalize=false"]))
     assert hp["learning_rate"] == 1e-4 and isinstance(hp["learning_rate"], float)
     assert hp["policy_kwargs"] == {"net_arch": [32]} and hp["normalize"] is False
+
+
+# -- main job output and plots (uwb_env/progress.py, training/plots.py) ------------------------
+
+def test_progress_writes_one_line_per_update_with_eta_in_a_log():
+    import io
+
+    from uwb_env.progress import progress
+
+    log = io.StringIO()  # not a TTY: no carriage returns running together
+    assert list(progress(range(5), 5, "job", stream=log, log_every_s=0.0)) == list(range(5))
+    lines = log.getvalue().splitlines()
+    assert "\r" not in log.getvalue() and lines[0].startswith("job  0/5") and "ETA ?" in lines[0]
+    assert lines[-1].startswith("job  5/5 (100%)") and "ETA 0:00" in lines[-1] and len(lines) == 6
+
+
+def test_plot_labels_carry_no_absolute_paths():
+    from uwb_env.training.plots import short_label
+
+    assert short_label("learned:/home/someone/runs/ppo/model.zip") == "learned:ppo"
+    assert short_label("rllib:/abs/runs/rllib/checkpoint") == "rllib:rllib"
+    assert short_label("fixed:10") == "fixed:10" and short_label("learned:ppo_scheduler") == "learned:ppo_scheduler"
+
+
+def _fake_results(n_steps=50, seeds=3):
+    rng = np.random.default_rng(0)
+    specs = ["fixed:10", "never", "always", "oracle:0.3", "learned:/abs/path/run/model.zip"]
+    sweep = [f"fixed:{k}" for k in (5, 20, 40)] + [f"threshold:{t}" for t in (0.1, 0.2)]
+    episodes, summary = [], []
+    for spec in specs + sweep:
+        scale = 3.0 if spec in ("always", "fixed:5") else 0.15
+        for s in range(seeds):
+            episodes.append({"policy": spec, "seed": s, "uses_ground_truth": spec.startswith("oracle"),
+                             "tag_error_trace": scale * rng.lognormal(0, 0.3, n_steps)})
+        group = "main" if spec in specs else "sweep_" + spec.partition(":")[0]
+        summary.append({"policy": spec, "group": group, "uses_ground_truth": spec.startswith("oracle"),
+                        "mean_tag_error_m": scale * (1 + 0.1 * len(spec) / 10),
+                        "calibrations_per_min": 0.0 if spec == "never" else 60.0 / (1 + len(spec))})
+    return {"summary": summary, "episodes": episodes, "dt_s": 0.2}
+
+
+def test_evaluation_plots_are_written(tmp_path):
+    pytest.importorskip("matplotlib")
+    from uwb_env.training.plots import evaluation_plots
+
+    paths = evaluation_plots(_fake_results(), str(tmp_path))
+    assert sorted(p.rsplit("/", 1)[1] for p in paths) == ["boxplot.png", "error_over_time.png", "tradeoff.png"]
+    assert all((tmp_path / p.rsplit("/", 1)[1]).stat().st_size > 10_000 for p in paths)
+
+
+def test_plots_skip_without_matplotlib(tmp_path, monkeypatch, capsys):
+    import sys
+
+    from uwb_env.training import plots
+
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import fails as in a core-only install
+    assert plots.evaluation_plots(_fake_results(), str(tmp_path)) == []
+    assert plots.paper_figures({}, [], [], [], {}, str(tmp_path), "") == []
+    assert "skipping plots" in capsys.readouterr().err and not list(tmp_path.iterdir())
+
+
+def test_summary_csv_floats_rounded_and_gt_note_only_with_a_gt_policy(tmp_path):
+    import csv
+
+    from uwb_env.training.evaluate import Args, evaluate, format_table
+
+    results = evaluate(Args(policies=["fixed:10", "never"], seeds=2, max_cycles=20, sweep=False, workers=1,
+                            out=str(tmp_path), plots=False, progress=False))
+    assert "(GT)" not in format_table(results["summary"])
+    with open(tmp_path / "summary.csv") as f:
+        values = [v for row in csv.DictReader(f) for v in row.values()]
+    def as_float(v):
+        try:
+            return float(v)
+        except ValueError:
+            return None
+
+    numbers = [(v, as_float(v)) for v in values if as_float(v) is not None and "." in v]
+    assert numbers and all(float(f"{x:.6g}") == x and len(v) < 14 for v, x in numbers)  # not 5.8999999999999995
+    assert results["written"] and not any(p.endswith(".png") for p in results["written"])

@@ -157,6 +157,8 @@ def evaluate(args: Args) -> dict:
     """Run every policy on every evaluation seed; write the files; return the results."""
     from uwb_env.cli import load_overrides
 
+    if args.progress:  # at once: loading the policies (torch, SB3) takes seconds
+        print("evaluate: loading policies ...", file=sys.stderr, flush=True)
     if args.seeds < 1:
         raise ValueError(f"seeds={args.seeds!r}: must be >= 1")
     if args.workers < 1:
@@ -181,6 +183,9 @@ def evaluate(args: Args) -> dict:
         specs.remove(spec)
     seeds = [EVAL_SEED_BASE + args.seed_offset + i for i in range(args.seeds)]
     jobs = [(spec, seed, config_dict) for spec in specs for seed in seeds]
+    if args.progress:
+        print(f"evaluate: {len(specs)} policies x {len(seeds)} seeds = {len(jobs)} episodes of {config.max_cycles} "
+              f"steps on {args.workers} worker(s)", file=sys.stderr, flush=True)
     episodes = run_jobs(jobs, args.workers, "evaluate", args.progress)
     main_specs = [p for p in main_specs if p in specs]
     if reference is None:
@@ -195,7 +200,7 @@ def evaluate(args: Args) -> dict:
                "tuned_file": tuned.get("path") if tuned else None,
                "matched_budget": _matched_budgets(episodes, main_specs) if args.sweep and len(seeds) > 1 else {}}
     if args.out:
-        write_outputs(results, args.out, plots=args.plots)
+        results["written"] = write_outputs(results, args.out, plots=args.plots)
     return results
 
 
@@ -268,7 +273,15 @@ def _format_means(summary: list[dict], only_main: bool = True) -> str:
     lines = ["  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths, strict=True)))
              for row in cells]
     lines.insert(1, "-" * len(lines[0]))
-    return "\n".join(lines) + "\n(GT) uses ground truth: a reference, not deployable. Errors in m."
+    notes = "Errors in m; busy = share of time calibrating; return = episode reward sum (higher is better)."
+    if any(r["uses_ground_truth"] for r in rows):
+        notes += "\n(GT) uses ground truth: a reference, not deployable."
+    return "\n".join(lines) + "\n" + notes
+
+
+def _sig(value, digits: int = 6):
+    """Floats to ``digits`` significant digits for the CSVs (5.9, not 5.8999999999999995)."""
+    return float(f"{value:.{digits}g}") if isinstance(value, float) else value
 
 
 def write_outputs(results: dict, out: str, plots: bool = True) -> list[str]:
@@ -279,14 +292,14 @@ def write_outputs(results: dict, out: str, plots: bool = True) -> list[str]:
         w = csv.writer(f)
         w.writerow(["policy", "seed", "uses_ground_truth", *METRICS])
         for e in results["episodes"]:
-            w.writerow([e["policy"], e["seed"], e["uses_ground_truth"], *(e[m] for m in METRICS)])
+            w.writerow([e["policy"], e["seed"], e["uses_ground_truth"], *(_sig(e[m]) for m in METRICS)])
     written.append(ep_path)
     sum_csv = os.path.join(out, "summary.csv")
     keys = list(results["summary"][0])
     with open(sum_csv, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=keys)
         w.writeheader()
-        w.writerows(results["summary"])
+        w.writerows({k: _sig(v) for k, v in row.items()} for row in results["summary"])
     written.append(sum_csv)
     sum_json = os.path.join(out, "summary.json")
     with open(sum_json, "w") as f:
@@ -300,59 +313,9 @@ def write_outputs(results: dict, out: str, plots: bool = True) -> list[str]:
 
 
 def write_plots(results: dict, out: str) -> list[str]:
-    try:
-        import matplotlib
+    from uwb_env.training.plots import evaluation_plots
 
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib not installed (pip install 'uwb-env[plot]'): skipping plots", file=sys.stderr)
-        return []
-    summary, episodes, dt = results["summary"], results["episodes"], results["dt_s"]
-    main = [r["policy"] for r in summary if r["group"] == "main"]
-    paths = []
-
-    fig, ax = plt.subplots(figsize=(9, 4.5))
-    for spec in main:
-        traces = np.array([e["tag_error_trace"] for e in episodes if e["policy"] == spec])
-        ax.plot(np.arange(traces.shape[1]) * dt, np.median(traces, axis=0), label=spec, lw=1)
-    ax.set(xlabel="time (s)", ylabel="median tag error over seeds (m)", yscale="log",
-           title="Tag error over time")
-    ax.legend(fontsize=8, ncol=2)
-    paths.append(_save(fig, out, "error_over_time.png"))
-
-    fig, ax = plt.subplots(figsize=(9, 4.5))
-    data = [np.concatenate([e["tag_error_trace"] for e in episodes if e["policy"] == spec]) for spec in main]
-    ax.boxplot(data, showfliers=False)
-    ax.set_xticks(range(1, len(main) + 1), main, rotation=20, fontsize=8)
-    ax.set(ylabel="tag error per step (m)", title="Tag error distribution (whiskers 1.5 IQR, no fliers)")
-    paths.append(_save(fig, out, "boxplot.png"))
-
-    fig, ax = plt.subplots(figsize=(7, 5))
-    for group, style in (("fixed", "o-"), ("threshold", "s-")):
-        pts = sorted((r["calibrations_per_min"], r["mean_tag_error_m"]) for r in summary
-                     if _label_group(r["policy"]) == group and r["calibrations_per_min"] > 0)
-        if len(pts) > 1:
-            ax.plot(*zip(*pts, strict=True), style, label=f"{group} sweep", ms=4, alpha=0.7)
-    for r in summary:
-        if r["group"] == "main":
-            ax.plot(r["calibrations_per_min"], r["mean_tag_error_m"], "*", ms=11,
-                    label=r["policy"] + (" (GT)" if r["uses_ground_truth"] else ""))
-    ax.set(xlabel="calibrations per minute", ylabel="mean tag error (m)", yscale="log",
-           title="Error vs calibration rate")
-    ax.legend(fontsize=8)
-    paths.append(_save(fig, out, "tradeoff.png"))
-    return paths
-
-
-def _save(fig, out: str, name: str) -> str:
-    import matplotlib.pyplot as plt
-
-    path = os.path.join(out, name)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return evaluation_plots(results, out)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -408,7 +371,7 @@ def main(args: Args) -> dict:
     print(format_table(results["summary"]))
     print(describe_reference(results))
     if args.out:
-        print(f"wrote {args.out}/ (episodes.csv, summary.csv, summary.json{', plots' if args.plots else ''})")
+        print(f"wrote {args.out}/ ({', '.join(os.path.basename(p) for p in results.get('written', []))})")
     return results
 
 

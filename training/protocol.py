@@ -113,5 +113,6 @@ def format_comparison(summary: list[dict], only_main: bool = True) -> str:
     lines = ["  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths, strict=True)))
              for row in cells]
     lines.insert(1, "-" * len(lines[0]))
-    legend = [line.replace("REF", reference or "the reference") for line in LEGEND]
+    legend = [line.replace("REF", reference or "the reference") for line in LEGEND
+              if not line.startswith("(GT)") or any(r["uses_ground_truth"] for r in rows)]
     return "\n".join(lines + [""] + legend)

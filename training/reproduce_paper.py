@@ -259,56 +259,11 @@ def format_table(s: dict) -> str:
     return "\n".join(lines)
 
 
-def plot(first: dict, anchors, tags, rotation, paper: dict, out: str, suffix: str) -> None:
-    import matplotlib
+def plot(first: dict, anchors, tags, rotation, paper: dict, out: str, suffix: str) -> list[str]:
+    """Fig. 4 and Fig. 5 (training/plots.py); skipped with a note when matplotlib is missing."""
+    from uwb_env.training.plots import paper_figures
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(2, 2, figsize=(12, 6), sharex=True)
-    n = 55
-    for i in range(first["anchor_error_m"].shape[1]):
-        axes[0, 0].plot(first["anchor_error_m"][:n, i], marker=".", label=f"A{i + 1}")
-    for i in range(first["tag_error_m"].shape[1]):
-        axes[1, 0].plot(first["tag_error_m"][:n, i], marker=".", label=f"Tag{i + 1}")
-    for name, values in paper["fig4_anchor_error_m"].items():
-        axes[0, 1].plot(values, marker=".", label=name)
-    for name, values in paper["fig4_tag_error_m"].items():
-        axes[1, 1].plot(values, marker=".", label=name)
-    axes[0, 0].set(title="uwb-env (one run)", ylabel="anchor position error (m)")
-    axes[0, 1].set(title="paper, Fig. 4")
-    axes[1, 0].set(ylabel="tag position error (m)", xlabel="simulation step")
-    axes[1, 1].set(xlabel="simulation step")
-    for ax in axes.ravel():
-        ax.legend(fontsize=7)
-        ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(os.path.join(out, f"paper_fig4{suffix}.png"), dpi=100)
-    plt.close(fig)
-
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 5), gridspec_kw={"width_ratios": [2, 1]})
-    ax1.boxplot([anchors, tags], positions=[1, 3], widths=0.6, patch_artist=True,
-                boxprops={"facecolor": "pink"}, flierprops={"marker": "+", "markersize": 3})
-    paper_boxes = [paper["fig5_anchor_translation_error_m"], paper["fig5_tag_translation_error_m"]]
-    ax1.bxp([_bxp(b, "paper") for b in paper_boxes], positions=[1.8, 3.8], widths=0.6, patch_artist=True,
-            boxprops={"facecolor": "lightblue"}, showfliers=False)
-    ax1.set_xticks([1, 1.8, 3, 3.8], ["anchors\n(ours)", "anchors\n(paper)", "tags\n(ours)", "tags\n(paper)"])
-    ax1.set(ylabel="translation error (m)")
-    ax2.boxplot([rotation], positions=[1], widths=0.6, patch_artist=True, boxprops={"facecolor": "bisque"},
-                flierprops={"marker": "+", "markersize": 3})
-    ax2.bxp([_bxp(paper["fig5_x_axis_rotation_error_rad"], "paper")], positions=[1.8], widths=0.6,
-            patch_artist=True, boxprops={"facecolor": "lightblue"}, showfliers=False)
-    ax2.set_xticks([1, 1.8], ["x axis\n(ours)", "x axis\n(paper)"])
-    ax2.set(ylabel="rotation error (rad)")
-    fig.suptitle("Fig. 5 reproduction: ours (many runs) beside the paper's box plots")
-    fig.tight_layout()
-    fig.savefig(os.path.join(out, f"paper_fig5{suffix}.png"), dpi=100)
-    plt.close(fig)
-
-
-def _bxp(b: dict, label: str) -> dict:
-    return {"label": label, "q1": b["q1"], "med": b["median"], "q3": b["q3"], "whislo": b["whisker_low"],
-            "whishi": b["whisker_high"], "fliers": []}
+    return paper_figures(first, anchors, tags, rotation, paper, out, suffix)
 
 
 if __name__ == "__main__":

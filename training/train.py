@@ -117,6 +117,18 @@ def _make_scheduler_env(env_config: dict):
     return gym.make(ENV_IDS["scheduler"], config=env_config)
 
 
+def _check_hyperparams(algo_cls, hp: dict) -> None:
+    import difflib
+    import inspect
+
+    accepted = set(inspect.signature(algo_cls.__init__).parameters) - {"self", "policy", "env", "_init_setup_model"}
+    for key in sorted(set(hp) - accepted):
+        close = difflib.get_close_matches(key, sorted(accepted), n=1)
+        hint = f"; did you mean {close[0]}?" if close else f"; known: {', '.join(sorted(accepted))}"
+        raise ValueError(f"--hp {key}={hp[key]} (or the hyperparameters YAML): not a {algo_cls.__name__} "
+                         f"hyperparameter{hint}")
+
+
 def latest_checkpoint(folder: Path) -> tuple[Path, int] | None:
     best = None
     for path in folder.glob("model_*_steps.zip"):
@@ -124,16 +136,6 @@ def latest_checkpoint(folder: Path) -> tuple[Path, int] | None:
         if m and (best is None or int(m.group(1)) > best[1]):
             best = (path, int(m.group(1)))
     return best
-
-
-def _check_hyperparams(algo_cls, hp: dict) -> None:
-    import inspect
-
-    known = set(inspect.signature(algo_cls.__init__).parameters) - {"self", "policy", "env"}
-    unknown = sorted(set(hp) - known)
-    if unknown:
-        raise ValueError(f"hyperparameter {unknown[0]!r} (from --hp or the YAML): not an argument of "
-                         f"{algo_cls.__name__}; known: {', '.join(sorted(known))}")
 
 
 def main(args: Args) -> dict:
@@ -150,13 +152,13 @@ def main(args: Args) -> dict:
     import torch
 
     torch.set_num_threads(args.torch_threads)  # small MLPs: threads cost more than they give
-    env_config = EnvConfig.from_dict(load_overrides(args.env_config)).to_dict()
+    env_config = EnvConfig.from_dict(load_overrides(args.env_config, "--env-config")).to_dict()
     n_envs = int(hp.pop("n_envs", 1))
     normalize = bool(hp.pop("normalize", False))
     norm_reward = bool(hp.pop("norm_reward", False))
     policy = hp.pop("policy", "MlpPolicy")
     algo_cls = {"ppo": sb3.PPO, "a2c": sb3.A2C, "dqn": sb3.DQN}[args.algo]
-    _check_hyperparams(algo_cls, hp)  # before anything is written: a typo leaves no empty run folder
+    _check_hyperparams(algo_cls, hp)  # before any folder exists: a typo leaves nothing behind
     out = Path(args.out)
     ckpt_dir = out / "checkpoints"
     ckpt_dir.mkdir(parents=True, exist_ok=True)
@@ -191,6 +193,11 @@ def main(args: Args) -> dict:
     if args.max_wall_s is not None:
         callbacks.append(_wall_clock_limit(args.max_wall_s))
     remaining = args.total_timesteps - model.num_timesteps
+    rollout = getattr(model, "n_steps", 0) * venv.num_envs  # PPO/A2C learn in whole rollouts
+    if rollout and remaining > 0 and remaining % rollout:
+        remaining = -(-remaining // rollout) * rollout  # what SB3 runs anyway; the progress bar's total says so
+        print(f"{args.algo}: whole rollouts of {rollout} steps: training to {model.num_timesteps + remaining:,} "
+              f"steps (asked {args.total_timesteps:,})", flush=True)
     start = time.perf_counter()
     if remaining > 0:
         model.learn(remaining, callback=CallbackList(callbacks), reset_num_timesteps=resume is None,
@@ -212,6 +219,9 @@ def main(args: Args) -> dict:
         record["best_eval_mean_reward"] = float(evals[0].best_mean_reward)
         means = [float(sum(r) / len(r)) for r in evals[0].evaluations_results]
         record["best_eval_timesteps"] = int(evals[0].evaluations_timesteps[means.index(max(means))])
+    if args.eval_freq > 0 and not (evals and evals[0].evaluations_results):
+        print(f"note: no validation ran (--eval-freq {args.eval_freq:,} > {model.num_timesteps:,} steps trained): "
+              f"{out / 'best'} and {out / 'eval'} are empty", flush=True)
     (out / "run.json").write_text(json.dumps(record, indent=1, default=str))
     _complete_best_model(out, ckpt_dir, record, normalize)
     venv.close()
@@ -282,23 +292,28 @@ def _has_progress_bar() -> bool:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     d = Args()
-    p.add_argument("--algo", choices=ALGOS, default=d.algo)
-    p.add_argument("--env", choices=tuple(ENV_IDS), default=d.env)
-    p.add_argument("--total-timesteps", type=int, default=d.total_timesteps)
-    p.add_argument("--seed", type=int, default=d.seed)
-    p.add_argument("--out", default=d.out)
+    p.add_argument("--algo", choices=ALGOS, default=d.algo, help="sb3 algorithm")
+    p.add_argument("--env", choices=tuple(ENV_IDS), default=d.env,
+                   help="scheduler: one central decision; parallel: per-anchor agents sharing a policy; batched: many "
+                        "scheduler copies in numpy")
+    p.add_argument("--total-timesteps", type=int, default=d.total_timesteps,
+                   help="env steps (on-policy algorithms round up to whole rollouts)")
+    p.add_argument("--seed", type=int, default=d.seed, help="training seed")
+    p.add_argument("--out", default=d.out, help="output folder (model.zip, run.json, checkpoints/, best/, eval/; "
+                   "rllib: runs/rllib)")
     p.add_argument("--hyperparams", default=None, help="YAML file (default: training/hyperparams/<algo>.yml)")
     p.add_argument("--hp", nargs="*", default=[], help="overrides key=value, e.g. learning_rate=1e-4")
     p.add_argument("--env-config", default=None, help="YAML/JSON file with EnvConfig overrides")
-    p.add_argument("--vec-env", choices=("dummy", "subproc"), default=d.vec_env)
-    p.add_argument("--checkpoint-freq", type=int, default=d.checkpoint_freq)
-    p.add_argument("--eval-freq", type=int, default=d.eval_freq)
-    p.add_argument("--eval-episodes", type=int, default=d.eval_episodes)
+    p.add_argument("--vec-env", choices=("dummy", "subproc"), default=d.vec_env, help="SB3 vector env class")
+    p.add_argument("--checkpoint-freq", type=int, default=d.checkpoint_freq, help="env steps between checkpoints")
+    p.add_argument("--eval-freq", type=int, default=d.eval_freq,
+                   help="env steps between validation runs (best/ and eval/); 0 = none")
+    p.add_argument("--eval-episodes", type=int, default=d.eval_episodes, help="episodes per validation run")
     p.add_argument("--no-progress-bar", dest="progress_bar", action="store_false")
     p.add_argument("--no-tensorboard", dest="tensorboard", action="store_false")
     p.add_argument("--no-resume", dest="resume", action="store_false", help="start fresh even if checkpoints exist")
     p.add_argument("--max-wall-s", type=float, default=None, help="stop after this many seconds")
-    p.add_argument("--verbose", type=int, default=d.verbose)
+    p.add_argument("--verbose", type=int, default=d.verbose, help="SB3 verbosity")
 
 
 def args_from_namespace(ns: argparse.Namespace) -> Args:

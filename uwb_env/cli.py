@@ -9,6 +9,10 @@ from collections.abc import Sequence
 from pathlib import Path
 
 
+class ArgumentError(ValueError):
+    """A command-line argument that cannot work: printed as one line naming it, exit status 2."""
+
+
 def load_overrides(path: str | None, option: str = "--config") -> dict:
     """Read a YAML/JSON mapping of config overrides (``None`` -> empty)."""
     if path is None:
@@ -16,15 +20,36 @@ def load_overrides(path: str | None, option: str = "--config") -> dict:
     import yaml
 
     if not Path(path).is_file():
-        raise FileNotFoundError(f"{option} {path}: no such file")
-    try:
-        with open(path) as f:
+        raise ArgumentError(f"{option} {path}: no such file")
+    with open(path) as f:
+        try:
             data = yaml.safe_load(f) or {}
-    except yaml.YAMLError as err:
-        raise ValueError(f"{option} {path}: not YAML/JSON ({str(err).splitlines()[0]})") from None
+        except yaml.YAMLError as err:
+            raise ArgumentError(f"{option} {path}: not YAML/JSON ({str(err).splitlines()[0]})") from err
     if not isinstance(data, dict):
-        raise ValueError(f"{option} {path}: expected a mapping at the top level")
+        raise ArgumentError(f"{option} {path}: expected a mapping at the top level")
     return data
+
+
+def check_policies(specs: list[str] | None) -> list[str] | None:
+    """Resolve ``rllib:`` paths to absolute ones (Ray reads a relative path as a URI without a
+    scheme) and build every policy once, so a bad spec fails before any episode runs."""
+    if not specs:
+        return specs
+    from uwb_env.agents.registry import make_policy
+
+    resolved = []
+    for spec in specs:
+        name, _, param = spec.partition(":")
+        if name == "rllib" and param and "://" not in param:
+            spec = f"rllib:{Path(param).expanduser().resolve()}"
+        try:
+            make_policy(spec)
+        except (ValueError, OSError, ImportError) as err:
+            raise ArgumentError(f"--policies {spec}: {str(err).splitlines()[0] if str(err) else type(err).__name__}") \
+                from err
+        resolved.append(spec)
+    return resolved
 
 
 def _simulate_args(p: argparse.ArgumentParser) -> None:
@@ -58,6 +83,8 @@ def _evaluate_args(p: argparse.ArgumentParser) -> None:
 def _evaluate(args: argparse.Namespace) -> int:
     from uwb_env.training.evaluate import args_from_namespace, main
 
+    load_overrides(args.config)  # a missing file fails here, before any work
+    args.policies = check_policies(args.policies)
     main(args_from_namespace(args))
     return 0
 
@@ -79,7 +106,8 @@ def _train_args(p: argparse.ArgumentParser) -> None:
     from uwb_env.training.train import add_arguments
 
     p.add_argument("--backend", choices=("sb3", "rllib"), default="sb3",
-                   help="sb3 or rllib (Ray; see `python -m uwb_env.training.train_rllib --help` for its options)")
+                   help="sb3: stable-baselines3 PPO/A2C/DQN on this machine; rllib: Ray RLlib PPO, locally or on "
+                        "a cluster (needs the 'cluster' extra; `python -m uwb_env.training.train_rllib --help`)")
     add_arguments(p)
     p.add_argument("--iterations", type=int, default=20, help="rllib: training iterations")
     p.add_argument("--address", default=None, help="rllib: Ray cluster address (default: a local instance)")
@@ -97,6 +125,7 @@ def _train(args: argparse.Namespace) -> int:
                   file=sys.stderr)
             return 2
         out = args.out if args.out != "runs/train" else "runs/rllib"
+        load_overrides(args.env_config, "--env-config")
         record = main(Args(iterations=args.iterations, out=out, seed=args.seed, address=args.address,
                            num_env_runners=args.num_env_runners, hp=args.hp, env_config=args.env_config,
                            resume=args.resume))
@@ -110,6 +139,7 @@ def _train(args: argparse.Namespace) -> int:
     except ImportError:
         print("uwb-env train: needs the 'train' extra: pip install 'uwb-env[train]'", file=sys.stderr)
         return 2
+    load_overrides(args.env_config, "--env-config")
     record = main(args_from_namespace(args))
     print(json.dumps({k: record[k] for k in ("num_timesteps", "training_wall_s", "env_steps_per_s")}, indent=1))
     print(f"model: {args.out}/model.zip  (evaluate: uwb-env evaluate --policies learned:{args.out}/model.zip fixed:10)")
@@ -161,9 +191,21 @@ COMMANDS = {
     "simulate": (_simulate_args, _simulate, "run the simulator and print a drift/ranging summary"),
     "evaluate": (_evaluate_args, _evaluate, "compare calibration schedulers over held-out seeds"),
     "tune": (_tune_args, _tune, "tune the heuristic schedulers' parameters on validation seeds"),
-    "train": (_train_args, _train, "train a scheduler with stable-baselines3 (PPO/A2C/DQN)"),
+    "train": (_train_args, _train, "train a scheduler: stable-baselines3 (PPO/A2C/DQN) or Ray RLlib (--backend rllib)"),
     "emulate": (_emulate_args, _emulate, "serve emulated DWM1001 devices on pseudo-terminals or sockets"),
 }
+
+
+class _DefaultsHelp(argparse.HelpFormatter):
+    """Shows each option's default, except flags, empty values and helps that state it."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if (not action.option_strings or "default" in text or any(action.default is v for v in (None, True, False))
+                or action.default in ([], "")
+                or action.default is argparse.SUPPRESS):
+            return text
+        return f"{text} (default: %(default)s)".strip()
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -174,7 +216,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     for name, (add_args, _, help_text) in COMMANDS.items():
         add_args(sub.add_parser(name, help=help_text, description=help_text,
-                                formatter_class=argparse.ArgumentDefaultsHelpFormatter))
+                                formatter_class=_DefaultsHelp))
     return parser
 
 
@@ -182,6 +224,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from uwb_env.config import ConfigError
 
+    # A user's mistake is one line naming the argument and exit status 2 (argparse's convention);
+    # anything else is a bug and keeps its traceback.
     try:
         return COMMANDS[args.command][1](args)
     except ConfigError as err:

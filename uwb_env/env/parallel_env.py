@@ -47,7 +47,34 @@ One team reward, the same for every anchor:
 alignment of the true anchors onto their estimates (range-only calibration cannot observe
 the drift of the whole frame, and the paper measures positions relative to the anchors);
 ``infos`` also carry the fixed-frame errors and the paper's rotation error. Each term is in
-``infos[agent]["reward_terms"]``.
+``infos[agent]["reward_<term>"]``.
+
+## Info
+``infos[agent]`` has the same keys and types at ``reset`` and after every step, all numbers,
+booleans or fixed-shape arrays (no None, no strings, no nested dicts), so clients that stack
+infos into tensors (TorchRL, vector envs) work. PettingZoo's convention is one dict per agent:
+the team-level keys (everything except ``anchor_error_m``) are the same values in every agent's
+dict; read them from any one agent.
+
+| key | type | meaning |
+| --- | --- | --- |
+| ``anchor_error_m`` | float | this anchor's position error (aligned frame), m |
+| ``mean_tag_error_m``, ``mean_anchor_error_m`` | float | team means (aligned frame), m |
+| ``mean_tag_error_fixed_frame_m``, ``mean_anchor_error_fixed_frame_m`` | float | the same in the fixed frame, m |
+| ``rotation_error_rad`` | float | the paper's rotation error |
+| ``tag_errors_m`` | (n_tags,) float array | per tag error, m |
+| ``tag_status`` | (n_tags,) int array | 0 ok, 1 ambiguous (mirror fits too), 2 no fix |
+| ``n_tags_ambiguous`` | int | tags with status 1 |
+| ``calibration_count``, ``anchor_round_count`` | int | team / per-anchor rounds finished |
+| ``time_calibrating_s``, ``time_s`` | float | channel time spent calibrating; episode time |
+| ``calibrating`` | bool | a round runs |
+| ``calibrating_fraction`` | float | fraction of the last step spent calibrating (0 at reset) |
+| ``round_started``, ``round_finished`` | bool | in the last step |
+| ``calibration_failed`` | bool | the last round failed (the reason: ``env.calibration_error``, "" otherwise) |
+| ``requests_ignored`` | int | requests made while a round ran |
+| ``round_anchor`` | int | anchor of a per-anchor round that started, -1 otherwise |
+| ``reward_`` + ``tag_error``, ``anchor_error``, ``calibration_time``, ``calibration_start`` | float | (0 at reset) |
+| ``ground_truth`` | bool | False on hardware (truth-based keys are NaN) |
 
 ## Starting state
 Anchors near the corners of the area, tags inside their polygon; a first calibration (the
@@ -79,11 +106,11 @@ from gymnasium import spaces
 from gymnasium.utils import EzPickle, seeding
 from pettingzoo import ParallelEnv
 
-from uwb_env.config import EnvConfig
+from uwb_env.config import EnvConfig, UnknownConfigKeyError
 from uwb_env.system import LocalizationSystem
 
 _PLAIN_INTS = (int, np.int64, np.int32)  # bool is a subclass of int, not the same type: refused
-# reward_terms carries the same four keys at reset (all zero) as after every step
+# the reward's four terms are in infos at reset (all zero) as after every step
 _ZERO_TERMS = {"tag_error": 0.0, "anchor_error": 0.0, "calibration_time": 0.0, "calibration_start": 0.0}
 
 
@@ -94,6 +121,12 @@ def make_config(config: EnvConfig | dict | None, overrides: dict[str, Any]) -> E
         config = EnvConfig.from_dict(config)
     elif not isinstance(config, EnvConfig):
         raise TypeError(f"config={config!r}: expected EnvConfig, dict or None")
+    unknown = [k for k in overrides if k not in EnvConfig.__dataclass_fields__]
+    if unknown:  # worded as Python words it: TorchRL's GymEnv retries without `frameskip` on this text
+        raise UnknownConfigKeyError(
+            unknown[0], overrides[unknown[0]],
+            f"__init__() got an unexpected keyword argument {unknown[0]!r} "
+            f"(EnvConfig keys: {sorted(EnvConfig.__dataclass_fields__)})")
     return config.replace(**overrides) if overrides else config
 
 
@@ -128,6 +161,7 @@ class UWBCalibrationParallelEnv(ParallelEnv, EzPickle):
         self.np_random, _ = seeding.np_random(None)
         self._renderer = None
         self.history: dict[str, list[float]] = {}
+        self.calibration_error = ""  # why the last round failed ("" when it did not)
 
     # EzPickle's state is only the constructor's arguments, so copy.deepcopy and pickle gave a
     # fresh, un-reset env. A simulated env copies its whole state instead (mid-episode copies
@@ -236,6 +270,7 @@ class UWBCalibrationParallelEnv(ParallelEnv, EzPickle):
 
     def _infos(self, report, terms) -> dict[str, dict]:
         s = self.system
+        self.calibration_error = (report.calibration_failed or "") if report else ""
         anchor_err = s.anchor_errors_m()
         tag_err = s.tag_errors_m()
         n_tags = max(len(tag_err), 1)  # means of no tags are 0
@@ -254,16 +289,16 @@ class UWBCalibrationParallelEnv(ParallelEnv, EzPickle):
             "calibrating_fraction": float(report.calibrating_fraction) if report else 0.0,
             "round_started": bool(report.round_started) if report else False,
             "round_finished": bool(report.round_finished) if report else False,
-            # fixed types at reset and every step: a flag and a message ("" when none)
+            # a flag (the message is env.calibration_error: TorchRL turns every info value into a tensor)
             "calibration_failed": bool(report and report.calibration_failed),
-            "calibration_error": (report.calibration_failed or "") if report else "",
             "requests_ignored": report.requests_ignored if report else 0,
             "round_anchor": report.round_anchor if report else -1,
             # per tag: 0 ok, 1 ambiguous (its mirror fits the ranges as well), 2 no fix
             "tag_status": s.tag_status.copy(),
             "n_tags_ambiguous": int((s.tag_status == 1).sum()),
             "anchor_round_count": s.anchor_round_count,
-            "reward_terms": {**_ZERO_TERMS, **terms},
+            # flat float keys, zero at reset (no nested dicts: TorchRL and vector envs stack infos)
+            **{f"reward_{k}": float(v) for k, v in {**_ZERO_TERMS, **terms}.items()},
             # False on hardware: the truth-based keys above are NaN and the reward's tag and
             # anchor terms are the residual proxy (see LocalizationSystem.reward_terms).
             "ground_truth": s.ground_truth,

@@ -87,7 +87,8 @@ class HardwareWorld(RoundRunner):
         if config.n_anchors != 4:
             raise ValueError(f"n_anchors={config.n_anchors!r}: the TIERS firmware calibrates exactly 4 anchors")
         if len(tags) != config.n_tags:
-            raise ValueError(f"tags: {len(tags)} drivers for n_tags={config.n_tags}")
+            raise ValueError(f"tags: {len(tags)} tag ports for n_tags={config.n_tags}: give one port per tag "
+                             f"or set sim.n_tags={len(tags)}")
         self.config = config
         self.hardware = hardware or HardwareConfig()
         self.anchor, self.tags = anchor, tags

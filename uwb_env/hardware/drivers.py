@@ -104,7 +104,8 @@ class PansShellTagDriver:
                 return
             except DeviceTimeout:
                 continue
-        raise DeviceTimeout(self.transport.url, "shell prompt after 2x Enter", self.prompt_timeout_s * self.retries)
+        what = "PANS shell prompt after 2x Enter (the TIERS anchor firmware has no shell: anchor/tag ports swapped?)"
+        raise DeviceTimeout(self.transport.url, what, self.prompt_timeout_s * self.retries)
 
     def command(self, text: str) -> None:
         self.transport.write(text.encode() + b"\r", pace_s=self.pace_s)
