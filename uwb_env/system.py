@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import cmath
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -25,6 +25,14 @@ from uwb_env.localization.multilateration import TAG_NO_FIX, check_mirror_2d, re
 from uwb_env.localization.relocation import relocate_anchor
 from uwb_env.measurements import pool_rounds
 from uwb_env.sim import RangeModel, World
+
+# CalibrationResult.status values, in the order of the ``calibration_fit`` code
+CALIBRATION_FIT_NAMES = ("ok", "poor_fit", "not_converged")
+
+
+def _first_rank(result) -> tuple:
+    """Order of preference among first-calibration results that are not clean."""
+    return (CALIBRATION_FIT_NAMES.index(result.status), result.ambiguous, result.chi2 / max(result.dof, 1))
 
 OBS_FIELDS = (
     "time_since_calibration_s",
@@ -99,6 +107,9 @@ class LocalizationSystem:
         self.tag_fix_age_s = np.zeros(m)
         self.tag_status = np.full(m, TAG_NO_FIX, dtype=np.int8)  # multilateration.TAG_STATUS_NAMES
         self.tag_refits = 0  # cold re-solves of stuck tags (diagnostics)
+        # the last team round's fit verdict (CALIBRATION_FIT_NAMES), shape ambiguity and chi2/dof
+        self.calibration_fit, self.calibration_ambiguous, self.calibration_chi2_per_dof = 0, False, 0.0
+        self.calibrations_poor_fit = 0
         self.tag_mirror_switches = 0  # fixes the ranges rejected in favour of their mirror
         w = cfg.residual_window_steps
         self._tag_residual_hist = np.zeros(w)
@@ -107,6 +118,7 @@ class LocalizationSystem:
         self.last_round_links: np.ndarray | None = None
         true_start, est_start = self.world.anchors_true.copy(), self.world.anchors_est.copy()
         result = self._first_calibration()
+        self._record_verdict(result)
         # The solution describes the robots around the round's midpoint; the solver's frame
         # becomes the estimate frame: est = R (world - origin).
         if self.ground_truth:
@@ -130,18 +142,41 @@ class LocalizationSystem:
         would simply keep ranging: each further round is pooled with the earlier ones (more
         exchanges per pair, less noise) until the shape is determined.
         """
-        cfg, pooled = self.config, None
-        for attempt in range(self.FIRST_CALIBRATION_MAX_ROUNDS):
-            matrix, _ = self.world.run_calibration_round()
+        cfg, pooled, best, last = self.config, None, None, None
+        for _ in range(self.FIRST_CALIBRATION_MAX_ROUNDS):
+            world = self.world
+            self._est_at_round_start = world.anchors_est.copy()
+            world.start_calibration_round()
+            while not world.round.done:
+                world.step()
+            finished = world.finish_calibration_round()
+            try:
+                matrix = self._to_round_midpoint(world.round_correction.correct_matrix(finished.result()), finished,
+                                                 0.5 * (self._est_at_round_start + world.anchors_est))
+            except LocalizationError as err:
+                last = err
+                continue
             pooled = matrix if pooled is None else pool_rounds(pooled, matrix)
             try:
-                return calibrate_anchors(
-                    self.world.round_correction.correct_matrix(pooled), dim=self.dim, loss=cfg.solver.loss,
+                result = calibrate_anchors(
+                    pooled, dim=self.dim, loss=cfg.solver.loss,
                     f_scale=cfg.solver.f_scale_sigmas, range_std_m=self.range_std_m,
                 )
             except LocalizationError as err:
                 last = err
-        raise type(last)(f"first calibration failed after {self.FIRST_CALIBRATION_MAX_ROUNDS} pooled rounds: {last}")
+                continue
+            # Without a prior, an ambiguous shape may be folded or mirrored in part: keep ranging
+            # rather than fix the frame on it. A poor fit is kept (and reported): more rounds
+            # pooled while the robots move would not make the ranges more consistent.
+            if result.status != "not_converged" and not result.ambiguous:
+                return result
+            if best is None or _first_rank(result) <= _first_rank(best):
+                best = result
+        if best is not None and best.status != "not_converged":
+            return best  # the verdict is reported (calibration_fit / calibration_ambiguous in infos)
+        raise (type(last) if last else LocalizationError)(
+            f"first calibration failed after {self.FIRST_CALIBRATION_MAX_ROUNDS} pooled rounds: "
+            f"{last if last else best.message}")
 
     def step(self, requests: np.ndarray, move_commands: np.ndarray | None = None,
              anchor_requests: np.ndarray | None = None) -> StepReport:
@@ -215,16 +250,49 @@ class LocalizationSystem:
         # carry the result to now with the odometry accumulated since then.
         est_mid = 0.5 * (self._est_at_round_start + self.world.anchors_est)
         try:
-            matrix = finished.result()  # on hardware: raises when the round failed
+            matrix = self.world.round_correction.correct_matrix(finished.result())  # hardware: raises on failure
             result = calibrate_anchors(
-                self.world.round_correction.correct_matrix(matrix), dim=self.dim, prior=est_mid, gauge=solver.gauge,
+                self._to_round_midpoint(matrix, finished, est_mid), dim=self.dim, prior=est_mid, gauge=solver.gauge,
                 loss=solver.loss, f_scale=solver.f_scale_sigmas, range_std_m=self.range_std_m,
                 prior_std_m=np.sqrt(np.maximum(self.predicted_anchor_var_m2(), self.range_std_m**2)),
             )
         except LocalizationError as err:  # e.g. dropouts disconnected the graph: keep odometry
             return f"{type(err).__name__}: {err}"
+        self._record_verdict(result)
+        if result.status == "not_converged":  # no solution to speak of: keep odometry, say why
+            return f"calibration not converged: {result.message}"
         self._apply_calibration(result, self.world.anchors_est - est_mid)
         return None
+
+    def _record_verdict(self, result) -> None:
+        self.calibration_fit = CALIBRATION_FIT_NAMES.index(result.status)
+        self.calibration_ambiguous = bool(result.ambiguous)
+        self.calibration_chi2_per_dof = result.chi2 / result.dof if result.dof > 0 else 0.0
+
+    def _to_round_midpoint(self, matrix, finished, est_mid: np.ndarray):
+        """Each ordered pair's mean range carried to the round's midpoint geometry.
+
+        The pairs are ranged one after another while the robots move (a round lasts about a
+        second at ~0.5 m/s), so the matrix mixes geometries tens of centimetres apart: no single
+        shape explains it within the range noise, and the fit test would flag most rounds. With
+        each anchor's odometry velocity over the round and the schedule's exchange times, a
+        pair ranged at t is corrected by the range rate: r_mid = r - u_ij . (v_i - v_j) (t - t_mid).
+        Rounds without exchange times (hardware) are returned unchanged."""
+        times = getattr(finished, "times_s", None)
+        span = self.world.time_s - finished.start_time_s
+        if times is None or span <= 0:
+            return matrix
+        n = self.n_anchors
+        t_sum, t_cnt = np.zeros((n, n)), np.zeros((n, n))
+        np.add.at(t_sum, (finished.initiator, finished.responder), times)
+        np.add.at(t_cnt, (finished.initiator, finished.responder), 1.0)
+        t_pair = t_sum / np.maximum(t_cnt, 1.0) - (finished.start_time_s + 0.5 * span)
+        velocity = (self.world.anchors_est - self._est_at_round_start) / span
+        diff = est_mid[:, None, :] - est_mid[None, :, :]
+        dist = np.sqrt((diff * diff).sum(-1))
+        np.fill_diagonal(dist, 1.0)
+        rate = ((diff / dist[..., None]) * (velocity[:, None, :] - velocity[None, :, :])).sum(-1)
+        return replace(matrix, mean_m=matrix.mean_m - rate * t_pair)
 
     def _finish_anchor_round(self, finished) -> str | None:
         """One anchor re-located against the others (their estimates and covariances as known up
@@ -261,7 +329,12 @@ class LocalizationSystem:
 
     def _apply_calibration(self, result, odometry_since_mid: np.ndarray) -> None:
         self.world.anchors_est = result.positions + odometry_since_mid
-        self.anchor_cov = result.anchor_covariance()
+        # A poor fit (e.g. an NLOS-biased pair the few spare pairs cannot single out) is still the
+        # best shape the ranges give, but its noise-model covariance is too small: scale it by
+        # the reduced chi-square (the Birge ratio), so the predicted errors say what we know.
+        scale = max(1.0, self.calibration_chi2_per_dof) if result.status == "poor_fit" else 1.0
+        self.anchor_cov = scale * result.anchor_covariance()
+        self.calibrations_poor_fit += result.status == "poor_fit"
         self.calibration_var_m2 = np.trace(self.anchor_cov, axis1=1, axis2=2)
         self.last_calibration_rms_m = result.rms_residual_m
         self.calibration_count += 1
@@ -323,8 +396,9 @@ class LocalizationSystem:
                 self.tag_mirror_switches += int(switched.sum())
                 res = np.linalg.norm(positions[:, None, :] - anchors[None], axis=-1) - ranges
                 per_anchor = np.abs(res)
-                with np.errstate(invalid="ignore"):  # a tag without ranges keeps its NaN
-                    rms = np.where(np.isfinite(rms), np.sqrt(np.nanmean(res * res, axis=1)), rms)
+                n_ranges = np.isfinite(res).sum(axis=1)  # a tag without ranges keeps its NaN
+                mean_sq = np.nansum(res * res, axis=1) / np.maximum(n_ranges, 1)
+                rms = np.where(np.isfinite(rms) & (n_ranges > 0), np.sqrt(mean_sq), rms)
             self.tag_status = np.where(np.isfinite(rms), status[0], TAG_NO_FIX).astype(np.int8)
         else:
             self.tag_status = np.where(np.isfinite(rms), 0, TAG_NO_FIX).astype(np.int8)

@@ -71,6 +71,9 @@ dict; read them from any one agent.
 | ``calibrating_fraction`` | float | fraction of the last step spent calibrating (0 at reset) |
 | ``round_started``, ``round_finished`` | bool | in the last step |
 | ``calibration_failed`` | bool | the last round failed (the reason: ``env.calibration_error``, "" otherwise) |
+| ``calibration_fit`` | int | the last team calibration's fit verdict: 0 ok, 1 poor fit (applied with its covariance scaled by chi2/dof), 2 not converged (not applied: odometry kept, ``calibration_failed``) |
+| ``calibration_ambiguous`` | bool | another shape fits those ranges as well (the prior, or more pooled rounds at reset, chose) |
+| ``calibration_chi2_per_dof`` | float | its reduced chi-square (1 = residuals as the range model predicts) |
 | ``requests_ignored`` | int | requests made while a round ran |
 | ``round_anchor`` | int | anchor of a per-anchor round that started, -1 otherwise |
 | ``reward_`` + ``tag_error``, ``anchor_error``, ``calibration_time``, ``calibration_start`` | float | (0 at reset) |
@@ -291,6 +294,11 @@ class UWBCalibrationParallelEnv(ParallelEnv, EzPickle):
             "round_finished": bool(report.round_finished) if report else False,
             # a flag (the message is env.calibration_error: TorchRL turns every info value into a tensor)
             "calibration_failed": bool(report and report.calibration_failed),
+            # the last team round's verdict: 0 ok, 1 poor fit (applied, covariance scaled by
+            # chi2/dof), 2 not converged (not applied); a shape the prior had to choose
+            "calibration_fit": int(s.calibration_fit),
+            "calibration_ambiguous": bool(s.calibration_ambiguous),
+            "calibration_chi2_per_dof": float(s.calibration_chi2_per_dof),
             "requests_ignored": report.requests_ignored if report else 0,
             "round_anchor": report.round_anchor if report else -1,
             # per tag: 0 ok, 1 ambiguous (its mirror fits the ranges as well), 2 no fix
