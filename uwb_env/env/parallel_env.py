@@ -71,8 +71,8 @@ dict; read them from any one agent.
 | ``calibrating_fraction`` | float | fraction of the last step spent calibrating (0 at reset) |
 | ``round_started``, ``round_finished`` | bool | in the last step |
 | ``calibration_failed`` | bool | the last round failed (the reason: ``env.calibration_error``, "" otherwise) |
-| ``calibration_fit`` | int | the last team calibration's fit verdict: 0 ok, 1 poor fit (applied with its covariance scaled by chi2/dof), 2 not converged (not applied: odometry kept, ``calibration_failed``) |
-| ``calibration_ambiguous`` | bool | another shape fits those ranges as well (the prior, or more pooled rounds at reset, chose) |
+| ``calibration_fit`` | int | last team calibration: 0 ok, 1 poor fit (covariance x chi2/dof), 2 not converged (kept odometry) |
+| ``calibration_ambiguous`` | bool | another shape fits those ranges as well (the prior chose) |
 | ``calibration_chi2_per_dof`` | float | its reduced chi-square (1 = residuals as the range model predicts) |
 | ``requests_ignored`` | int | requests made while a round ran |
 | ``round_anchor`` | int | anchor of a per-anchor round that started, -1 otherwise |
