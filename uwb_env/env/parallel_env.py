@@ -71,7 +71,7 @@ dict; read them from any one agent.
 | ``calibrating_fraction`` | float | fraction of the last step spent calibrating (0 at reset) |
 | ``round_started``, ``round_finished`` | bool | in the last step |
 | ``calibration_failed`` | bool | the last round failed (the reason: ``env.calibration_error``, "" otherwise) |
-| ``calibration_fit`` | int | last team calibration: 0 ok, 1 poor fit (covariance x chi2/dof), 2 not converged (kept odometry) |
+| ``calibration_fit`` | int | last team round: 0 ok, 1 poor fit (cov. x chi2/dof), 2 not converged (odometry kept) |
 | ``calibration_ambiguous`` | bool | another shape fits those ranges as well (the prior chose) |
 | ``calibration_chi2_per_dof`` | float | its reduced chi-square (1 = residuals as the range model predicts) |
 | ``requests_ignored`` | int | requests made while a round ran |
