@@ -21,7 +21,13 @@ import numpy as np
 
 from uwb_env.config import EnvConfig
 from uwb_env.localization import LocalizationError, calibrate_anchors, locate_tags, rigid_align
-from uwb_env.localization.multilateration import TAG_NO_FIX, check_mirror_2d, refit_stuck_tags, track_tags_2d
+from uwb_env.localization.multilateration import (
+    TAG_NO_FIX,
+    check_mirror_2d,
+    check_mirror_3d,
+    refit_stuck_tags,
+    track_tags_2d,
+)
 from uwb_env.localization.relocation import relocate_anchor
 from uwb_env.measurements import pool_rounds
 from uwb_env.sim import RangeModel, World
@@ -387,10 +393,16 @@ class LocalizationSystem:
             )
             positions, rms = fix.positions, np.where(fix.ok, fix.residual_rms_m, np.nan)
             per_anchor = np.abs(np.linalg.norm(positions[:, None, :] - anchors[None], axis=-1) - ranges)
-        if self.dim == 2:
-            checked, status, switched = check_mirror_2d(
-                anchors[None], positions[None], ranges[None], self.range_std_m**2 + float(pred_var.mean()) / 2,
-                None if cov is None else cov[None], solver.loss, solver.f_scale_sigmas)
+        if self.n_tags:
+            var = self.range_std_m**2 + float(pred_var.mean()) / 2
+            if self.dim == 2:
+                checked, status, switched = check_mirror_2d(
+                    anchors[None], positions[None], ranges[None], var, None if cov is None else cov[None],
+                    solver.loss, solver.f_scale_sigmas)
+            else:
+                checked, status, switched = check_mirror_3d(anchors, positions, ranges, var, cov, solver.loss,
+                                                            solver.f_scale_sigmas)
+                checked, status, switched = checked[None], status[None], switched[None]
             if switched.any():
                 positions = checked[0]
                 self.tag_mirror_switches += int(switched.sum())
@@ -400,8 +412,6 @@ class LocalizationSystem:
                 mean_sq = np.nansum(res * res, axis=1) / np.maximum(n_ranges, 1)
                 rms = np.where(np.isfinite(rms) & (n_ranges > 0), np.sqrt(mean_sq), rms)
             self.tag_status = np.where(np.isfinite(rms), status[0], TAG_NO_FIX).astype(np.int8)
-        else:
-            self.tag_status = np.where(np.isfinite(rms), 0, TAG_NO_FIX).astype(np.int8)
         dt = world.dt_s
         all_ok = math.isfinite(_sum(rms))  # a tag without a fix has a NaN rms
         ok = np.isfinite(rms)

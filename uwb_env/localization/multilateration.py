@@ -492,3 +492,63 @@ def check_mirror_2d(anchors, positions, ranges_m, range_var_m2, anchor_covarianc
     switched |= better
     status[tie] = TAG_AMBIGUOUS
     return positions, status, switched
+
+
+def check_mirror_3d(anchors, positions, ranges_m, range_var_m2, anchor_covariance=None, loss="linear", f_scale=2.0,
+                    margin_chi2=10.83, iterations=10):
+    """:func:`check_mirror_2d` in 3D: the mirror across the anchors' best-fit plane.
+
+    Robots carry their anchors at similar heights, so the anchors are nearly coplanar and a
+    fix and its reflection across their plane give nearly the same ranges; with one range
+    lost (3 ranges, 3 unknowns) the two fit exactly. The mirror is refined with
+    :func:`locate_tags` from the reflected start and compared by chi-square, with the same
+    rules (switch when the ranges reject the fix, ``TAG_AMBIGUOUS`` when both fit within
+    ``margin_chi2`` and lie clearly apart).
+
+    Args: ``anchors`` (N, 3), ``positions`` (M, 3) the fixes, ``ranges_m`` (M, N), the rest as
+    :func:`check_mirror_2d`. Returns ``(positions, status, switched)`` with (M,) status/switched.
+    """
+    anchors = np.asarray(anchors, dtype=float)
+    positions = np.array(positions, dtype=float)
+    ranges_m = np.asarray(ranges_m, dtype=float)
+    m = positions.shape[0]
+    status = np.full(m, TAG_OK, dtype=np.int8)
+    switched = np.zeros(m, dtype=bool)
+    fixed = np.isfinite(positions).all(-1)
+    status[~fixed] = TAG_NO_FIX
+    if not fixed.any() or anchors.shape[0] < 3:
+        return positions, status, switched
+    # per tag, the plane of the anchors it has ranges to (with one range lost, the three left
+    # fit a fix and its reflection across their plane exactly)
+    valid = np.isfinite(ranges_m)[..., None]
+    count = np.maximum(valid.sum(1), 1)
+    centre = np.where(valid, anchors[None], 0.0).sum(1) / count  # (M, 3)
+    spread = np.where(valid, anchors[None] - centre[:, None], 0.0)
+    normal = np.linalg.svd(spread)[2][:, -1]  # least principal direction per tag
+    mirror = positions - 2.0 * (((positions - centre) * normal).sum(-1))[:, None] * normal
+    sigma = math.sqrt(range_var_m2)
+
+    def chi2(p, r):
+        res = np.linalg.norm(p[:, None, :] - anchors[None], axis=-1) - r
+        return np.nansum(res * res, -1) / range_var_m2, np.isfinite(res).sum(-1)
+
+    c_fix, n_valid = chi2(np.nan_to_num(positions), ranges_m)
+    candidate = fixed & (n_valid >= 3) & (np.linalg.norm(mirror - positions, axis=-1) > 3.0 * sigma)
+    if not candidate.any():
+        return positions, status, switched
+    rows = np.flatnonzero(candidate)
+    refined = locate_tags(anchors, ranges_m[rows], sigma, anchor_covariance=anchor_covariance, loss=loss,
+                          f_scale=f_scale, initial=mirror[rows], max_iterations=iterations, with_covariance=False)
+    c_mir = np.full(m, np.inf)
+    mirrored = np.array(positions)
+    mirrored[rows] = refined.positions
+    ok_rows = rows[refined.ok]
+    c_mir[ok_rows] = chi2(mirrored[ok_rows], ranges_m[ok_rows])[0]
+    apart = np.linalg.norm(mirrored - positions, axis=-1) > 3.0 * sigma
+    ok_mirror = candidate & np.isfinite(c_mir) & apart
+    better = ok_mirror & (c_mir < c_fix - margin_chi2)
+    tie = ok_mirror & ~better & (np.abs(c_mir - c_fix) <= margin_chi2)
+    positions[better] = mirrored[better]
+    switched |= better
+    status[tie] = TAG_AMBIGUOUS
+    return positions, status, switched
