@@ -36,7 +36,7 @@ import numpy as np
 
 EVAL_SEED_BASE = 1_000_000
 DEFAULT_POLICIES = ("fixed:10", "threshold:0.15", "residual:0.2", "never", "oracle:0.3")
-FIXED_SWEEP_STEPS = (5, 7, 10, 15, 20, 30, 45, 70, 100)
+FIXED_SWEEP_STEPS = (5, 7, 10, 15, 20, 30, 45, 70, 100, 150, 250)
 THRESHOLD_SWEEP_M = (0.08, 0.12, 0.2, 0.3, 0.5)
 # Tuned specs of the default scenario (``uwb-env tune --out`` this file to refresh it).
 DEFAULT_TUNED = Path(__file__).with_name("tuned") / "default.json"
@@ -375,13 +375,27 @@ def main(args: Args) -> dict:
     return results
 
 
+def _display_path(path: str) -> str:
+    """Relative to the working directory when below it (no absolute paths in printed output)."""
+    if Path(path).resolve() == DEFAULT_TUNED.resolve():
+        return "the shipped training/tuned/default.json"
+    try:
+        return os.path.relpath(path) if not os.path.relpath(path).startswith("..") else path
+    except ValueError:
+        return path
+
+
 def describe_reference(results: dict) -> str:
     lines = []
     if results.get("reference"):
         lines.append(f"reference: {results['reference']} ({results['reference_kind']}"
-                     + (f", from {results['tuned_file']})" if results.get("tuned_file") else ")"))
+                     + (f", from {_display_path(results['tuned_file'])})" if results.get("tuned_file") else ")"))
     for spec, m in (results.get("matched_budget") or {}).items():
         rate = next(r["calibrations_per_min"] for r in results["summary"] if r["policy"] == spec)
+        if not np.isfinite(m["fixed_iqm_at_matched_rate_m"]):
+            lines.append(f"matched budget: {spec}'s {rate:.1f} cal/min lies outside the fixed-interval sweep "
+                         "(no extrapolation)")
+            continue
         lines.append(f"matched budget: the fixed-interval curve at {spec}'s {rate:.1f} cal/min has IQM "
                      f"{m['fixed_iqm_at_matched_rate_m']:.3f} m [{m['ci_low_m']:.3f}, {m['ci_high_m']:.3f}]")
     seeds = results["seeds"]
