@@ -38,6 +38,7 @@ estimate worse than the bound and its covariance too small (``weighting="sample"
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -96,6 +97,10 @@ class CalibrationResult:
         ambiguous: another shape, clearly different, fits the ranges as well (within the fit
             test's margin): with a prior the one closest to it was taken, but the ranges alone
             do not decide (e.g. a quadrilateral with a missing diagonal, a near-collinear team).
+            Without a prior also when the frame's reflection is uncertain: the rule "the other
+            anchors' y (3D: z) sum positive" is within 3 sigma of flipping, so the coordinates
+            may be the mirror image of the paper frame's (thin strips with anchors on both
+            sides of the line through anchors 0 and 1).
     """
 
     positions: np.ndarray
@@ -453,6 +458,18 @@ def _shape_distance(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.sqrt(((a @ rot.T + trans - b) ** 2).sum(1)).max())
 
 
+def _reflection_uncertain(positions: np.ndarray, covariance: np.ndarray, dim: int, sigmas: float = 3.0) -> bool:
+    """The paper frame's reflection rule (the anchors' last coordinates sum positive) within
+    ``sigmas`` standard deviations of flipping. Ranges cannot see a reflection: near the rule's
+    threshold the noise decides on which side of the x axis (xy plane) the team lands."""
+    n = len(positions)
+    axis = dim - 1
+    total = float(positions[:, axis].sum())
+    idx = np.arange(n) * dim + axis
+    var = float(covariance[np.ix_(idx, idx)].sum())
+    return bool(abs(total) < sigmas * math.sqrt(max(var, 0.0)))
+
+
 def _finish(problem: _Problem, best: _Candidate, refs, prior, gauge, tried, ambiguous=False) -> CalibrationResult:
     n, dim = problem.n, problem.dim
     out, x_gauge = best.out, best.x
@@ -467,6 +484,7 @@ def _finish(problem: _Problem, best: _Candidate, refs, prior, gauge, tried, ambi
             positions = x_gauge * signs
             flips = np.tile(signs, n)
             covariance = cov_gauge * flips[:, None] * flips[None, :]  # exact +-1: no leakage
+        ambiguous = ambiguous or _reflection_uncertain(positions, covariance, dim)
     else:
         pivot = 0 if gauge == "anchor0" else None
         rot, trans = rigid_align(x_gauge, prior, allow_reflection=True, pivot=pivot)
