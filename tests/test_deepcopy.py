@@ -63,3 +63,23 @@ def test_scheduler_env_clone_continues_identically():
         out, out_twin = env.step(int(t % 6 == 0)), twin.step(int(t % 6 == 0))
         for part, part_twin in zip(out, out_twin, strict=True):
             assert _same(part, part_twin), t
+
+
+def test_batched_vector_env_clone_continues_identically():
+
+    from uwb_env.env.vector_env import CalibrationSchedulingVectorEnv
+
+    env = CalibrationSchedulingVectorEnv(num_envs=4, max_cycles=60)
+    env.reset(seed=[1, 2, 3, 4])
+    for t in range(30):
+        env.step(np.array([t % 10 == 0] * 4))
+    clones = [copy.deepcopy(env), pickle.loads(pickle.dumps(env))]
+    # past the time limit: the autoreset happens in the clones too
+    actions = [np.array([t % 7 == 0, t % 5 == 0, False, True]) for t in range(40)]
+    ref = [env.step(a) for a in actions]
+    for clone in clones:
+        out = [clone.step(a) for a in actions]
+        for (o1, r1, te1, tr1, _), (o2, r2, te2, tr2, _) in zip(ref, out, strict=True):
+            np.testing.assert_array_equal(o1, o2)
+            np.testing.assert_array_equal(r1, r2)
+            np.testing.assert_array_equal(te1 | tr1, te2 | tr2)
