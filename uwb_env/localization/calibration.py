@@ -351,7 +351,10 @@ class _Problem:
             # Robust losses are non-convex: start them from the plain least-squares solution so
             # an outlier-corrupted start does not trap them in a wrong minimum.
             x0 = solve_pair_ranges(structure, x0, dist, inv_var, "linear", 1.0, self.max_iterations).positions
-        out = solve_pair_ranges(structure, x0, dist, inv_var, self.loss, self.f_scale, self.max_iterations)
+        # Reweighting converges only linearly (slowly when many residuals sit near the loss's
+        # knee): the robust stage gets four times the plain stage's iteration budget.
+        budget = self.max_iterations if self.loss == "linear" else 4 * self.max_iterations
+        out = solve_pair_ranges(structure, x0, dist, inv_var, self.loss, self.f_scale, budget)
         z = out.residuals * np.sqrt(inv_var)
         chi2 = float(z @ z) if np.all(np.isfinite(z)) else np.inf
         dof = len(dist) - structure.n_free
@@ -420,22 +423,31 @@ class _Problem:
         z2[cand.keep] = cand.out.residuals ** 2 * self.inv_var[cand.keep]
         return np.bincount(self.pairs[:, 0], z2, self.n) + np.bincount(self.pairs[:, 1], z2, self.n)
 
-    def reject_outliers(self, refs, best: _Candidate) -> _Candidate:
-        """Drop the worst pair while the fit fails and the shape stays rigid; re-solve each time.
+    def reject_outliers(self, refs, best: _Candidate, tries: int = 1, max_fraction: float = 0.4) -> _Candidate:
+        """Drop one pair at a time while the fit fails and the shape stays rigid.
+
+        Each step re-solves without each of the ``tries`` pairs that are longest for the shape
+        (default 1: the longest) and drops the one whose removal fits best (lowest chi-square).
+        Only too-long pairs are suspects: NLOS only ever lengthens a range, and with many biased links the solution is
+        pulled towards them, so the largest residual either way often sits on a good pair that
+        the biased ones made look short (30 % NLOS links, N = 8: median error 4.4 -> 1.9x the
+        clean bound, rounds at 10x 32 % -> 11 %).
 
         A pair is only identifiable as the outlier while the others keep some redundancy: with
         fewer than two degrees of freedom left, dropping *any* pair fits perfectly, so nothing
-        is dropped and the poor fit is reported instead.
+        is dropped and the poor fit is reported instead; likewise when no fit is reached within
+        ``max_fraction`` of the pairs dropped.
         """
-        for _ in range(len(self.pairs)):
+        start = best
+        for _ in range(int(max_fraction * len(self.pairs))):
             if best.fit_ok or best.dof - 1 < 2:
                 break
             z = np.zeros(len(self.pairs))
-            z[best.keep] = np.abs(best.out.residuals) * np.sqrt(self.inv_var[best.keep])
-            order = np.argsort(-z)
-            for worst in order[: 3]:
-                if not best.keep[worst]:
-                    continue
+            z[best.keep] = best.out.residuals * np.sqrt(self.inv_var[best.keep])
+            live = np.flatnonzero(best.keep)
+            too_long = live[np.argsort(z[live])][: tries]  # residual = model - measured < 0
+            trial = None
+            for worst in too_long.tolist():
                 keep = best.keep.copy()
                 keep[worst] = False
                 if not _connected(self.pairs[keep], self.n):
@@ -445,11 +457,14 @@ class _Problem:
                     cand.out.covariance()  # rigid: the remaining pairs still fix every coordinate
                 except GeometryError:
                     continue
-                best = cand
+                if trial is None or cand.chi2 < trial.chi2:
+                    trial = cand
+            if trial is None:
                 break
-            else:
-                break
-        return best
+            best = trial
+        # More than ``max_fraction`` of the pairs "outliers" is a wrong model (e.g. robots that
+        # moved during a long round), not outliers: keep every pair and report the poor fit.
+        return best if best.fit_ok else start
 
 
 def _shape_distance(a: np.ndarray, b: np.ndarray) -> float:

@@ -233,7 +233,7 @@ def solve_pair_ranges(
     sqrt_iv = np.sqrt(inv_var)
     linear = loss == "linear"
     if xtol_sigma is None:
-        xtol_sigma = 1e-3 if linear else 1e-6
+        xtol_sigma = 1e-3 if linear else 1e-4
     # floor: steps below ~1e-12 of the scene's size are lost to rounding
     xtol = max(xtol_sigma / float(sqrt_iv.max()), 1e-12 * float(np.abs(dist).max()))
     xtol2 = xtol * xtol
