@@ -12,7 +12,7 @@ from uwb_env.config import EnvConfig
 from uwb_env.env.policy import rollout
 from uwb_env.hardware.backend import HardwareConfig, connect
 from uwb_env.hardware.drivers import PansTlvDriver, RoundFailed, TiersAnchorDriver
-from uwb_env.hardware.emulator import Faults, Scene, standard_setup
+from uwb_env.hardware.emulator import Faults, Scene, emulated_anchor_ids, standard_setup
 from uwb_env.hardware.recording import ReplayTransport, SessionRecorder, read_session
 from uwb_env.hardware.tiers import RangeMatrixMessage, TiersDecoder
 from uwb_env.hardware.transport import SerialTransport
@@ -32,7 +32,8 @@ def test_episode_on_emulated_anchors_matches_ground_truth(tmp_path):
     session = tmp_path / "session.jsonl"
     with emu:
         rec = SessionRecorder(session)
-        world = connect(cfg.sim, urls["anchor"], [urls[f"tag_{i}"] for i in range(3)], recorder=rec)
+        world = connect(cfg.sim, urls["anchor"], [urls[f"tag_{i}"] for i in range(3)],
+                        pans_anchor_ids=emulated_anchor_ids(), recorder=rec)
         env = uwb_env.parallel_env(config=cfg, backend=world)
         assert env.deterministic is False
         result = rollout(env, FixedIntervalPolicy(12), seed=0)
@@ -94,7 +95,8 @@ def test_unplug_mid_round_then_replug_the_episode_continues(tmp_path):
     session = tmp_path / "s.jsonl"
     with emu:
         rec = SessionRecorder(session)
-        world = connect(cfg.sim, urls["anchor"], [urls[f"tag_{i}"] for i in range(3)], recorder=rec,
+        world = connect(cfg.sim, urls["anchor"], [urls[f"tag_{i}"] for i in range(3)],
+                        pans_anchor_ids=emulated_anchor_ids(), recorder=rec,
                         hardware=HardwareConfig(round_timeout_s=1.5))
         env = uwb_env.parallel_env(config=cfg, backend=world)
         obs, infos = env.reset(seed=0)
@@ -141,7 +143,8 @@ def test_scheduler_env_runs_on_emulated_devices():
     scene = Scene(cfg.sim, seed=4)
     emu, urls = standard_setup(scene)
     with emu:
-        world = connect(cfg.sim, urls["anchor"], [urls[f"tag_{i}"] for i in range(3)])
+        world = connect(cfg.sim, urls["anchor"], [urls[f"tag_{i}"] for i in range(3)],
+                        pans_anchor_ids=emulated_anchor_ids())
         env = CalibrationSchedulingEnv(cfg, backend=world)
         obs, info = env.reset(seed=0)
         assert env.observation_space.contains(obs)

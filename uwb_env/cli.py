@@ -175,6 +175,10 @@ def _emulate(args: argparse.Namespace) -> int:
     for name, url in urls.items():
         if name != "anchor":
             print(f"  {name:8s} {url:32s} PANS tag (generic TLV mode; two \\r for the shell)")
+    from uwb_env.hardware.emulator import emulated_anchor_ids
+
+    print(f"The tags range to PANS anchors with IDs {', '.join(emulated_anchor_ids())} "
+          "(connect(..., pans_anchor_ids=...)).")
     print("Ctrl-C stops.", flush=True)
     try:
         with emu:

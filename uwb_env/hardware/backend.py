@@ -23,8 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from uwb_env.config import ConfigBase, SimConfig
-from uwb_env.hardware.drivers import PansShellTagDriver, RoundFailed, TiersAnchorDriver
-from uwb_env.hardware.emulator import anchor_id4
+from uwb_env.hardware.drivers import PansShellTagDriver, TiersAnchorDriver
+from uwb_env.hardware.errors import HardwareError
 from uwb_env.localization.errors import LocalizationError
 from uwb_env.measurements import RangeMatrix
 from uwb_env.sim.calibration_round import RoundTiming
@@ -39,10 +39,14 @@ class HardwareConfig(ConfigBase):
     pans_correct_bias: bool = False
     round_timeout_s: float = 4.0
     tag_range_max_age_s: float = 0.5  # older lec reports count as missing
+    # a lec range farther than this from the distance between the tag's own position estimate
+    # (same line) and the anchor's reported position was damaged on the wire: rejected, counted
+    tag_range_consistency_m: float = 0.5
+    tag_watchdog_s: float = 1.0  # a tag silent this long (or reconnected) gets its stream restarted
     realtime: bool = True  # wait for each dt_s tick (False: step as fast as called, e.g. replay)
 
     def __post_init__(self) -> None:
-        self._positive("round_timeout_s", "tag_range_max_age_s")
+        self._positive("round_timeout_s", "tag_range_max_age_s", "tag_range_consistency_m", "tag_watchdog_s")
 
 
 class CalibrationFailed(LocalizationError):
@@ -92,7 +96,17 @@ class HardwareWorld(RoundRunner):
         self.config = config
         self.hardware = hardware or HardwareConfig()
         self.anchor, self.tags = anchor, tags
-        self.anchor_ids = anchor_ids or [anchor_id4(i) for i in range(config.n_anchors)]
+        if anchor_ids is None:
+            raise ValueError("anchor_ids: the IDs (4 hex digits, e.g. '1151') the tags report for anchors "
+                             f"0..{config.n_anchors - 1}, in anchor order; `uwb-env emulate` prints the emulator's")
+        anchor_ids = [str(a).upper() for a in anchor_ids]
+        if len(anchor_ids) != config.n_anchors or len(set(anchor_ids)) != len(anchor_ids):
+            raise ValueError(f"anchor_ids={anchor_ids!r}: expected {config.n_anchors} distinct IDs")
+        self.anchor_ids = anchor_ids
+        for tag in tags:
+            tag.watchdog_s = self.hardware.tag_watchdog_s
+        self.tag_ranges_rejected = 0  # lec ranges inconsistent with their own line (damaged)
+        self.unknown_anchor_ids: set[str] = set()  # IDs the tags reported that are not in anchor_ids
         self.range_model = range_model or RangeModel(config.ranging)
         # What the estimator undoes, per firmware (stock PANS is usually antenna-delay calibrated).
         self.tag_correction = self._correction(self.hardware.pans_correct_bias)
@@ -113,9 +127,14 @@ class HardwareWorld(RoundRunner):
         self.time_s, self.step_count = 0.0, 0
         self.anchors_est = np.zeros((self.config.n_anchors, self.config.dim))
         self.odometry.reset(self.config.n_anchors, rng)
+        if self.round is not None and not self.round.done:
+            self.anchor.abandon()  # its matrix, if the firmware still prints it, is stale
         self.round = None
         for tag in self.tags:
-            tag.start_lec()
+            try:
+                tag.ensure_streaming()  # never toggles a running stream off
+            except HardwareError:
+                pass  # a tag away or rebooting: its watchdog keeps trying, its ranges are NaN meanwhile
         self._t0 = time.monotonic()
 
     def step(self) -> None:
@@ -137,7 +156,7 @@ class HardwareWorld(RoundRunner):
         rnd.elapsed_s = self.time_s - rnd.start_time_s
         try:
             message = self.anchor.poll()
-        except RoundFailed as err:
+        except HardwareError as err:  # RoundFailed, or the port went away: a failed round, never stuck
             rnd.done, rnd.error = True, str(err)
             return
         if message is not None:
@@ -169,15 +188,31 @@ class HardwareWorld(RoundRunner):
             if report is None or now - tag.latest_time > self.hardware.tag_range_max_age_s:
                 continue
             for r in report.ranges:
-                if r.anchor_id in self.anchor_ids:
+                if r.anchor_id not in self.anchor_ids:
+                    self.unknown_anchor_ids.add(r.anchor_id)
+                elif self._consistent(r, report.position_m):
                     out[self.anchor_ids.index(r.anchor_id), t] = r.distance_m
+                else:
+                    self.tag_ranges_rejected += 1
         return out
+
+    def _consistent(self, r, position_m) -> bool:
+        """The range agrees with the tag's own position estimate in the same line (when the
+        line has one and the anchors report configured positions): a dropped or inserted
+        character that still parses as a number is caught here."""
+        if position_m is None or not any(r.position_m):
+            return True
+        expected = float(np.linalg.norm(np.subtract(position_m, r.position_m)))
+        return abs(r.distance_m - expected) <= self.hardware.tag_range_consistency_m
 
     def start_calibration_round(self, measurements_per_pair: int | None = None) -> HardwareRound:
         k = measurements_per_pair or self.config.calibration.measurements_per_pair
         self.round = HardwareRound(self.time_s, self.timing.duration_s(self.config.n_anchors, k),
                                    self.config.n_anchors)
-        self.anchor.start_round()
+        try:
+            self.anchor.start_round()
+        except HardwareError as err:  # e.g. the anchor's port is away: a failed round, reported in infos
+            self.round.done, self.round.error = True, str(err)
         return self.round
 
     def finish_calibration_round(self) -> HardwareRound:
@@ -204,15 +239,34 @@ class _MotionCommands:
         self.callback(rows, headings, speeds)
 
 
-def connect(config: SimConfig, anchor_url: str, tag_urls: list[str], hardware: HardwareConfig | None = None,
-            recorder=None, odometry_source=None, move_callback=None, shell_pace_s: float = 0.0) -> HardwareWorld:
+class RadioCompatibilityError(HardwareError, ValueError):
+    """A deployment whose radios cannot talk to each other."""
+
+
+def connect(config: SimConfig, anchor_url: str, tag_urls: list[str], *, pans_anchor_ids: list[str] | None = None,
+            hardware: HardwareConfig | None = None, recorder=None, odometry_source=None, move_callback=None,
+            shell_pace_s: float = 0.0) -> HardwareWorld:
     """Open the ports (recording every byte when ``recorder`` is given) and build the backend.
 
-    ``anchor_url``: TIERS anchor ID 1; ``tag_urls``: one PANS tag per simulated tag slot.
+    ``anchor_url``: TIERS autocalibration anchor ID 1 (calibration rounds); ``tag_urls``: one
+    stock-PANS tag per simulated tag slot, streaming ``lec``.
+
+    Radio compatibility: the TIERS builds use their own frames and preamble code 10, stock PANS
+    code 9 and its own TDMA MAC, so a PANS tag cannot range to anchors running TIERS firmware.
+    Tags therefore range to a *second, PANS anchor set* carried by the same robots (one PANS
+    anchor next to each TIERS anchor); ``pans_anchor_ids`` names them (the 16-bit IDs the tags
+    report, e.g. ``"1151"``), in anchor order. Without it ``connect`` refuses
+    (:class:`RadioCompatibilityError`) rather than return NaN ranges forever.
     """
     from uwb_env.hardware.transport import SerialTransport
 
+    if tag_urls and pans_anchor_ids is None:
+        raise RadioCompatibilityError(
+            "pans_anchor_ids: stock-PANS tags cannot range to anchors running the TIERS firmware (different "
+            "frames and preamble codes); give the IDs of the PANS anchors the tags range to (one per robot, "
+            "in anchor order), e.g. pans_anchor_ids=['1150', '1151', '1152', '1153']")
     hardware = hardware or HardwareConfig()
     anchor = TiersAnchorDriver(SerialTransport(anchor_url, recorder=recorder), hardware.round_timeout_s)
     tags = [PansShellTagDriver(SerialTransport(url, recorder=recorder), pace_s=shell_pace_s) for url in tag_urls]
-    return HardwareWorld(config, anchor, tags, hardware, odometry_source=odometry_source, move_callback=move_callback)
+    return HardwareWorld(config, anchor, tags, hardware, anchor_ids=pans_anchor_ids,
+                         odometry_source=odometry_source, move_callback=move_callback)

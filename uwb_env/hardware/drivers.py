@@ -13,9 +13,9 @@ import time
 import numpy as np
 
 from uwb_env.hardware import tlv
-from uwb_env.hardware.errors import DeviceTimeout, HardwareError, ParseError
-from uwb_env.hardware.pans_shell import PROMPT, GenericModeError, LocationReport, Prompt, ShellDecoder
-from uwb_env.hardware.tiers import START, RangeMatrixMessage, RejectedMatrix, TiersDecoder
+from uwb_env.hardware.errors import DeviceTimeout, HardwareError, ParseError, PortError
+from uwb_env.hardware.pans_shell import PROMPT, GenericModeError, LocationReport, ShellDecoder
+from uwb_env.hardware.tiers import START, Banner, RangeMatrixMessage, RejectedMatrix, TiersDecoder, WaitingForStart
 
 
 class RoundFailed(HardwareError):
@@ -27,50 +27,129 @@ class RoundFailed(HardwareError):
 
 
 class TiersAnchorDriver:
-    """Anchor ID 1 of the TIERS firmware: one ``S`` per round, one matrix back."""
+    """Anchor ID 1 of the TIERS firmware: one ``S`` per round, one matrix back, each matrix
+    tied to the request that caused it.
 
-    def __init__(self, transport, round_timeout_s: float = 4.0):
+    The firmware latches the start flag (an ``S`` sent while a round runs is absorbed by that
+    round; there is no abort) and, after printing the matrix, sleeps ~30 ms and flushes its RX
+    *and* TX FIFOs before printing ``Waiting for Start order`` (see
+    ``Autocalibration/Initiator/main.c`` and ``ss_init_main.c`` in TIERS/dwm1001-uwb-firmware).
+    So the driver is an explicit state machine:
+
+    - ``READY``: the firmware waits for ``S`` (after ``Waiting for Start order``, the boot banner,
+      or at connection). :meth:`start_round` sends ``S`` and enters ``RUNNING``.
+    - ``RUNNING``: the next matrix belongs to this request. It moves to ``SETTLING`` (the
+      firmware is about to flush; an ``S`` now would be lost).
+    - ``SETTLING``: waiting for ``Waiting for Start order`` (or the banner) -> ``READY``.
+    - ``DRAINING``: a request timed out or was abandoned while the firmware may still run it:
+      a matrix that arrives now is stale (discarded, counted in ``stale_matrices``); ``READY``
+      again on ``Waiting for Start order`` or the banner, or after ``drain_quiet_s`` without a
+      byte from the device (a hung round that will never print).
+
+    A start requested while not ``READY`` is held and sent as soon as the firmware is ready;
+    its timeout runs from the request, so a device that never becomes ready fails each round
+    within its timeout instead of receiving an ``S`` that an old round would absorb.
+    """
+
+    READY, RUNNING, SETTLING, DRAINING = "ready", "running", "settling", "draining"
+
+    def __init__(self, transport, round_timeout_s: float = 4.0, drain_quiet_s: float | None = None,
+                 port_wait_s: float = 0.2):
         self.transport = transport
         self.round_timeout_s = round_timeout_s
+        self.drain_quiet_s = 3.0 * round_timeout_s if drain_quiet_s is None else drain_quiet_s
+        self.port_wait_s = port_wait_s
         self.decoder = TiersDecoder()
-        self.rounds_started = 0
+        self.state = self.READY
+        self.rounds_started = 0  # requests made
+        self.starts_sent = 0
+        self.stale_matrices = 0  # matrices of timed-out or abandoned requests, discarded
         self._deadline: float | None = None
+        self._pending = False  # a request whose S waits for the firmware to be ready
+        self._last_rx = time.monotonic()
 
     @property
     def running(self) -> bool:
+        """A request is open (its S sent or held back)."""
         return self._deadline is not None
 
     def start_round(self) -> int:
-        """Send the start byte (exactly ``S``: a line ending would abort the round)."""
+        """Request a round; returns its number. The ``S`` goes out now if the firmware is ready,
+        else as soon as it is (exactly ``S``: any other byte would pause a running round).
+
+        Raises :class:`PortError` if the port is away (after ``port_wait_s``)."""
         if self.running:
             raise HardwareError(f"port {self.transport.url!r}: round {self.rounds_started} still running")
-        self.transport.flush_input()
-        self.decoder = TiersDecoder()
-        self.transport.write(START)
+        self._handle(self._pump())  # output already received (a banner, the end of a stale round)
         self.rounds_started += 1
         self._deadline = time.monotonic() + self.round_timeout_s
+        self._pending = True
+        try:
+            self._send_if_ready()
+        except PortError:
+            self._deadline, self._pending = None, False
+            raise
         return self.rounds_started
 
-    def poll(self) -> RangeMatrixMessage | None:
-        """The round's matrix once it has arrived; None while it runs.
+    def abandon(self) -> None:
+        """Give up the open request (e.g. the env resets): its matrix, if it comes, is stale."""
+        if self.running:
+            self._deadline, self._pending = None, False
+            if self.state == self.RUNNING:  # its S went out: the firmware runs it to its end
+                self.state = self.DRAINING
 
-        Raises :class:`RoundFailed` when the round times out (a missing anchor hangs the
-        firmware silently) or its matrix arrived damaged.
+    def poll(self) -> RangeMatrixMessage | None:
+        """The open request's matrix once it has arrived; None while it runs.
+
+        Raises :class:`RoundFailed` when the request times out (a missing anchor hangs the
+        firmware silently), its matrix arrived damaged, or the firmware ended the round (or
+        rebooted) without a matrix the driver could read.
         """
-        if not self.running:
-            return None
-        for message in self.decoder.feed(self.transport.read_available()):
-            if isinstance(message, RangeMatrixMessage):
-                self._deadline = None
-                return message
-            if isinstance(message, RejectedMatrix):
-                self._deadline = None
-                raise RoundFailed(self.transport.url, self.rounds_started, message.reason)
-        if time.monotonic() > self._deadline:
-            self._deadline = None
+        matrix = self._handle(self._pump())
+        if matrix is not None:
+            return matrix
+        if self.state == self.DRAINING and time.monotonic() - self._last_rx > self.drain_quiet_s:
+            self.state = self.READY  # silent for long: no round is printing any more
+        if self._pending:
+            try:
+                self._send_if_ready()
+            except PortError as err:
+                self._deadline, self._pending = None, False
+                raise RoundFailed(self.transport.url, self.rounds_started, str(err)) from err
+        if self.running and time.monotonic() > self._deadline:
+            sent = not self._pending
+            self._deadline, self._pending = None, False
+            if sent:
+                self.state = self.DRAINING  # the firmware may still finish it: its matrix is stale
             raise RoundFailed(self.transport.url, self.rounds_started,
-                              f"no matrix within {self.round_timeout_s:.1f} s (an anchor missing or hung?)")
+                              f"no matrix within {self.round_timeout_s:.1f} s" + (
+                                  " (an anchor missing or hung?)" if sent else
+                                  " (the firmware never became ready for a start: a previous round still running?)"))
         return None
+
+    def _handle(self, messages: list) -> RangeMatrixMessage | None:
+        """Advance the state machine over decoded messages; the open request's matrix if any."""
+        matrix, failure = None, None
+        for message in messages:  # all of them, even after a failure: the state must follow
+            if isinstance(message, (RangeMatrixMessage, RejectedMatrix)):
+                if self.state == self.RUNNING:
+                    self.state = self.SETTLING
+                    self._deadline = None
+                    if isinstance(message, RejectedMatrix):
+                        failure = message.reason
+                    else:
+                        matrix = message
+                elif isinstance(message, RangeMatrixMessage):
+                    self.stale_matrices += 1
+            elif isinstance(message, (WaitingForStart, Banner)):
+                if self.state == self.RUNNING:  # the round ended (or the device rebooted): no matrix
+                    self._deadline = None
+                    what = "rebooted" if isinstance(message, Banner) else "ended the round"
+                    failure = f"the firmware {what} without a readable matrix"
+                self.state = self.READY
+        if failure is not None:
+            raise RoundFailed(self.transport.url, self.rounds_started, failure)
+        return matrix
 
     def run_round(self) -> RangeMatrixMessage:
         self.start_round()
@@ -80,54 +159,132 @@ class TiersAnchorDriver:
                 return message
             time.sleep(0.005)
 
+    def _pump(self) -> list:
+        data = self.transport.read_available()
+        if data:
+            self._last_rx = time.monotonic()
+        try:
+            return self.decoder.feed(data)
+        except Exception:  # noqa: BLE001 (decoders never raise; a bug there must not end the round)
+            self.decoder = TiersDecoder()
+            return []
+
+    def _send_if_ready(self) -> None:
+        if self._pending and self.state == self.READY:
+            self.transport.write(START, wait_s=self.port_wait_s)
+            self._pending = False
+            self.starts_sent += 1
+            self.state = self.RUNNING
+
 
 class PansShellTagDriver:
-    """A PANS tag in shell mode streaming ``lec`` reports."""
+    """A PANS tag in shell mode streaming ``lec`` reports.
 
-    def __init__(self, transport, pace_s: float = 0.0, retries: int = 5, prompt_timeout_s: float = 1.5):
+    Stock PANS *toggles* ``lec`` (sent to a streaming tag it stops the stream), repeats the
+    previous command on an empty line (so the two ``\\r`` that enter the shell can toggle it
+    too), and returns to generic (TLV) mode after any reboot. So the driver never sends ``lec``
+    blindly: :meth:`ensure_streaming` first listens for reports and only when none come enters
+    the shell and starts the stream, then checks that reports arrive. A watchdog in
+    :meth:`poll` does the same when the stream has been silent for ``watchdog_s`` or the port
+    reconnected (a power cycle or USB re-enumeration reboots the tag into generic mode).
+    """
+
+    def __init__(self, transport, pace_s: float = 0.0, retries: int = 3, prompt_timeout_s: float = 1.0,
+                 listen_s: float = 0.3, watchdog_s: float = 1.0):
         self.transport = transport
         self.pace_s, self.retries, self.prompt_timeout_s = pace_s, retries, prompt_timeout_s
+        self.listen_s, self.watchdog_s = listen_s, watchdog_s
         self.decoder = ShellDecoder()
         self.latest: LocationReport | None = None
         self.latest_time: float = -np.inf
         self.reports = 0
+        self.restarts = 0  # watchdog restarts of the stream (reboots, lost streams)
+        self._last_attempt = -np.inf
+        self._reconnections = getattr(transport, "reconnections", 0)
+        self._generic_seen = False
 
-    def enter_shell(self) -> None:
+    def enter_shell(self, retries: int | None = None) -> None:
         """Two ``\\r`` (spaced), wait for ``dwm> ``; retry when the device answers in generic mode."""
-        for _ in range(self.retries):
-            self.transport.flush_input()
-            self.transport.write(b"\r")
+        retries = self.retries if retries is None else retries
+        for _ in range(retries):
+            self.transport.write(b"\r", wait_s=0.2)
             time.sleep(0.05)
-            self.transport.write(b"\r")
+            self.transport.write(b"\r", wait_s=0.2)
             try:
                 self.transport.read_until(PROMPT, self.prompt_timeout_s)
                 return
             except DeviceTimeout:
                 continue
         what = "PANS shell prompt after 2x Enter (the TIERS anchor firmware has no shell: anchor/tag ports swapped?)"
-        raise DeviceTimeout(self.transport.url, what, self.prompt_timeout_s * self.retries)
+        raise DeviceTimeout(self.transport.url, what, self.prompt_timeout_s * retries)
 
     def command(self, text: str) -> None:
-        self.transport.write(text.encode() + b"\r", pace_s=self.pace_s)
+        self.transport.write(text.encode() + b"\r", pace_s=self.pace_s, wait_s=0.2)
 
-    def start_lec(self) -> None:
-        self.enter_shell()
-        self.command("lec")
+    def ensure_streaming(self, attempts: int = 2) -> None:
+        """Make the ``lec`` stream run without ever toggling a running one off.
+
+        Raises :class:`DeviceTimeout` when no report arrives after ``attempts`` restarts and
+        :class:`PortError` while the port is away."""
+        if self._listen(self.listen_s):
+            return
+        for _ in range(attempts):
+            self.transport.flush_input()
+            self.decoder = ShellDecoder()
+            self.enter_shell()
+            if self._listen(self.listen_s):  # the empty lines repeated a stopped 'lec'
+                return
+            self.command("lec")
+            if self._listen(max(self.listen_s, 0.5)):
+                return
+        raise DeviceTimeout(self.transport.url, "lec reports after starting the stream", self.listen_s)
+
+    start_lec = ensure_streaming
 
     def poll(self) -> list[LocationReport]:
-        """Reports that arrived since the last call (the newest is also kept in ``latest``)."""
+        """Reports that arrived since the last call (the newest is also kept in ``latest``);
+        restarts the stream when the watchdog says so (errors are kept for the next try)."""
+        out = self._read()
+        now = time.monotonic()
+        reconnections = getattr(self.transport, "reconnections", 0)
+        reconnected = reconnections != self._reconnections
+        silent = now - self.latest_time > self.watchdog_s
+        if (reconnected or silent or self._generic_seen) and now - self._last_attempt > self.watchdog_s:
+            self._last_attempt = now
+            if getattr(self.transport, "connected", None) is None or self.transport.connected.is_set():
+                self._reconnections, self._generic_seen = reconnections, False
+                try:
+                    self.ensure_streaming(attempts=1)
+                    self.restarts += 1
+                except HardwareError:
+                    pass  # still away or rebooting: the next watchdog period tries again
+        return out
+
+    def _read(self) -> list[LocationReport]:
         out = []
-        for message in self.decoder.feed(self.transport.read_available()):
+        try:
+            messages = self.decoder.feed(self.transport.read_available())
+        except Exception:  # noqa: BLE001 (decoders never raise; a bug there must not stop the tag)
+            self.decoder, messages = ShellDecoder(), []
+        for message in messages:
             if isinstance(message, LocationReport):
                 out.append(message)
             elif isinstance(message, GenericModeError):
-                self.start_lec()  # the device reset into generic mode: re-enter and restart
-            elif isinstance(message, Prompt):
-                continue
+                self._generic_seen = True  # the device reset into generic mode
         if out:
             self.latest, self.latest_time = out[-1], time.monotonic()
             self.reports += len(out)
         return out
+
+    def _listen(self, seconds: float) -> bool:
+        """Read for up to ``seconds``; True as soon as a report arrived."""
+        deadline = time.monotonic() + seconds
+        while True:
+            if self._read():
+                return True
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.01)
 
 
 class PansTlvDriver:

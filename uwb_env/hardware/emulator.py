@@ -45,11 +45,13 @@ class Faults(ConfigBase):
     truncate_row_probability: float = 0.0  # TIERS: per matrix, one row loses its tail
     hang: bool = False  # silent: no output, input ignored (a missing TIERS anchor)
     response_delay_s: float = 0.0  # extra latency before each output chunk
+    round_slowdown: float = 1.0  # TIERS: rounds take this many times the timing model's duration
 
     def __post_init__(self) -> None:
         for name in ("garbage_probability", "drop_char_probability", "truncate_row_probability"):
             self._probability(name)
         self._non_negative("response_delay_s")
+        self._positive("round_slowdown")
 
 
 class Scene:
@@ -95,43 +97,88 @@ def anchor_id4(index: int) -> str:
     return f"{0x1150 + index:04X}"
 
 
-class TiersAnchorDevice:
-    """Anchor ID 1 of the TIERS autocalibration firmware (4 anchors: scene anchors 0..3)."""
+def emulated_anchor_ids(n: int = 4) -> list[str]:
+    """The IDs the emulated PANS tags report for anchors 0..n-1 (``pans_anchor_ids`` of connect)."""
+    return [anchor_id4(i) for i in range(n)]
 
-    def __init__(self, scene: Scene, faults: Faults = Faults(), k: int | None = None, seed: int = 1):
+
+class TiersAnchorDevice:
+    """Anchor ID 1 of the TIERS autocalibration firmware (4 anchors: scene anchors 0..3).
+
+    Modelled on ``Autocalibration/Initiator/main.c``: the main loop reads at most one byte per
+    iteration into the start flag and advances the round only while that flag is ``S`` (another
+    byte pauses it, a later ``S`` resumes it; an ``S`` during a round is absorbed: the flag is
+    latched, there is no abort and no queue). At the end the matrix is printed, the firmware
+    sleeps ``LAST_DELAY_MS`` (30 ms) and flushes its RX FIFO (input in that window is lost),
+    then prints ``Waiting for Start order``. ``round_s`` overrides the timing model's round
+    duration (tests); ``round_id_in_std`` writes the round's number (cm) into std[0, 1] so
+    tests can tell which round a matrix came from.
+    """
+
+    SETTLE_S = 0.030  # LAST_DELAY_MS before app_uart_flush()
+
+    def __init__(self, scene: Scene, faults: Faults = Faults(), k: int | None = None, seed: int = 1,
+                 round_s: float | None = None, round_id_in_std: bool = False):
         if scene.config.n_anchors != 4:
             raise ValueError(f"n_anchors={scene.config.n_anchors!r}: the TIERS firmware hard-wires 4 anchors")
         self.scene, self.faults = scene, faults
         self.k = k or scene.config.calibration.measurements_per_pair
         self.rng = np.random.default_rng(seed)
+        self.round_s = round_s
+        self.round_id_in_std = round_id_in_std
         self.out = bytearray((BANNER_INIT + "\r\n").encode())
-        self._round_start: float | None = None
+        self._flag = b"0"
+        self._progress_s = 0.0  # round time advanced while the flag was 'S'
+        self._running = False
+        self._last = None
+        self._settle_until: float | None = None
         self._swap_sent = False
-        self.rounds = 0
+        self.rounds = 0  # rounds started
+        self.inputs_lost = 0  # bytes thrown away by the end-of-round flush
+
+    def reboot(self) -> None:
+        """USB power cycle: the round in progress is gone; the boot banner is printed."""
+        self._running, self._settle_until, self._flag = False, None, b"0"
+        self.out = bytearray((BANNER_INIT + "\r\n").encode())
 
     def receive(self, data: bytes, now: float) -> None:
         if self.faults.hang or not data:
             return
-        if data[-1:] == b"S":  # the last byte wins (the firmware latches c[0])
-            if self._round_start is None:
-                self._round_start, self._swap_sent = now, False
-        else:
-            self._round_start = None  # any other byte freezes the round: nothing more is printed
+        if self._settle_until is not None:  # app_uart_flush() empties the RX FIFO
+            self.inputs_lost += len(data)
+            return
+        self._advance(now)
+        self._flag = data[-1:]  # one byte per loop iteration: the last one read wins
+        if self._flag == b"S" and not self._running:
+            self._running, self._progress_s, self._swap_sent = True, 0.0, False
+            self.rounds += 1
+
+    def _duration(self) -> float:
+        nominal = self.round_s if self.round_s is not None else self.scene.world.timing.duration_s(4, self.k)
+        return nominal * self.faults.round_slowdown
+
+    def _advance(self, now: float) -> None:
+        if self._running and self._flag == b"S" and self._last is not None:
+            self._progress_s += now - self._last
+        self._last = now
 
     def poll(self, now: float) -> bytes:
         if self.faults.hang:
             self.out.clear()
             return b""
-        if self._round_start is not None:
-            duration = self.scene.world.timing.duration_s(4, self.k)
-            elapsed = now - self._round_start
-            if not self._swap_sent and elapsed > duration / 4:
+        self._advance(now)
+        if self._settle_until is not None and now >= self._settle_until:
+            self._settle_until, self._flag = None, b"0"
+            self.out += b"Waiting for Start order\r\n"
+        if self._running:
+            duration = self._duration()
+            if not self._swap_sent and self._progress_s > duration / 4:
                 self.out += (ROLE_SWAP + "\r\n").encode()
                 self._swap_sent = True
-            if elapsed >= duration:
+            if self._progress_s >= duration:
                 self.out += self._matrix()
-                self._round_start = None
-                self.rounds += 1
+                self._running = False
+                self._settle_until = now + self.SETTLE_S
         data, self.out = bytes(self.out), bytearray()
         return _apply_faults(data, self.faults, self.rng)
 
@@ -146,7 +193,9 @@ class TiersAnchorDevice:
                     r = r[np.isfinite(r)]
                     if len(r):
                         mean[i, j], std[i, j] = r.mean(), r.std()  # population std, as the firmware
-        text = encode_matrix(mean, std)
+        if self.round_id_in_std:
+            std[0, 1] = self.rounds / 100.0
+        text = encode_matrix(mean, std).split(b" Waiting for Start order")[0]  # printed after the flush
         if self.rng.random() < self.faults.truncate_row_probability:
             lines = text.split(b"\r\n")
             row = int(self.rng.integers(0, 4))
@@ -177,6 +226,11 @@ class PansTagDevice:
         self.glue_prompt = glue_prompt
         self._glue_next = False
         self._generic = b""
+
+    def reboot(self) -> None:
+        """Power cycle / USB re-enumeration: back in generic (TLV) mode, streams off."""
+        self.mode, self.streams, self._line, self._last_command = "generic", set(), b"", ""
+        self.out.clear()
 
     # -- input ---------------------------------------------------------------------------------
     def receive(self, data: bytes, now: float) -> None:
@@ -358,6 +412,8 @@ class SocketPort:
         self._conn: socket.socket | None = None
         self._down_until = 0.0
         self._pending_unplug: float | None = None
+        self.connections = 0
+        self.unplugs = 0
 
     @staticmethod
     def _listen(port: int) -> socket.socket:
@@ -373,6 +429,7 @@ class SocketPort:
         self._pending_unplug = seconds
 
     def _do_unplug(self, seconds: float) -> None:
+        self.unplugs += 1
         self._down_until = time.monotonic() + seconds
         if self._conn is not None:
             self._conn.close()
@@ -392,6 +449,7 @@ class SocketPort:
             return
         conn.setblocking(False)
         self._conn = conn
+        self.connections += 1
 
     def read(self, timeout_s: float) -> bytes:
         if self._pending_unplug is not None:
@@ -413,6 +471,10 @@ class SocketPort:
             self._conn.close()
             self._conn = None
         return data
+
+    @property
+    def connected(self) -> bool:
+        return self._conn is not None
 
     def write(self, data: bytes) -> None:
         if self._conn is None or not data:
@@ -447,8 +509,15 @@ class Emulator:
         return port.url
 
     def _serve(self, device, port) -> None:
+        unplugs = getattr(port, "unplugs", 0)
         while not self._stop.is_set():
             data = port.read(self.tick_s)
+            if getattr(port, "unplugs", 0) != unplugs and getattr(port, "connected", False):
+                # USB-powered boards lose power with the cable: the device boots again when the
+                # port comes back (and the host has reopened it, so the boot output is seen)
+                unplugs = port.unplugs
+                if hasattr(device, "reboot"):
+                    device.reboot()
             now = time.monotonic()
             if data:
                 device.receive(data, now)

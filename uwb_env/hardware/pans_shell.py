@@ -20,7 +20,10 @@ from uwb_env.hardware.errors import ParseError
 PROMPT = b"dwm> "
 ENTER_SHELL = b"\r\r"
 GENERIC_ERROR = b"@\x01\x01"
-_NUM = r"-?\d+(?:\.\d+)?"
+# The firmware prints metres with exactly two decimals ("%d.%02d"): a number in any other form
+# lost or gained a character on the wire (a lost '.' turns 6.44 into 644, a lost digit into 6.4).
+_NUM = r"-?\d+\.\d\d"
+_STRICT = re.compile(_NUM)
 _AN = re.compile(rf"AN(\d+),([0-9A-Fa-f]{{4}}),({_NUM}),({_NUM}),({_NUM}),({_NUM})(?=,AN|,POS|\s*$)")
 _POS = re.compile(rf"POS,({_NUM}),({_NUM}),({_NUM}),(\d+)\s*$")
 _DIST = re.compile(r"DIST,(\d+)")
@@ -91,10 +94,10 @@ def _anchor_groups(fields: tuple, n: int) -> tuple | None:
     joined = "".join(ids)
     if len(joined) != 4 * n or not _HEX.issuperset(joined) or len(set(ids)) != n:
         return None
-    try:
-        v = list(map(float, (x for i, x in enumerate(fields) if i % 4)))
-    except ValueError:
+    coords = [x for i, x in enumerate(fields) if i % 4]
+    if not all(map(_STRICT.fullmatch, coords)):
         return None
+    v = list(map(float, coords))
     if not math.isfinite(sum(v)):
         return None
     return tuple(i.upper() for i in ids), tuple((v[3 * k], v[3 * k + 1], v[3 * k + 2]) for k in range(n))
@@ -124,11 +127,12 @@ def _lec_fast(body: str) -> LocationReport | None:
         if len(_ANCHOR_CACHE) >= _ANCHOR_CACHE_SIZE:
             _ANCHOR_CACHE.clear()
         _ANCHOR_CACHE[fields] = groups
-    try:
-        d = list(map(float, get_dist(f)))
-        pos = tuple(map(float, get_pos(f))) if size == 5 else None
-    except ValueError:
-        return None
+    dist_fields = get_dist(f)
+    pos_fields = get_pos(f) if size == 5 else ()
+    if not all(map(_STRICT.fullmatch, dist_fields)) or not all(map(_STRICT.fullmatch, pos_fields)):
+        return None  # a damaged number: the tolerant path keeps the intact groups
+    d = list(map(float, dist_fields))
+    pos = tuple(map(float, pos_fields)) if size == 5 else None
     if not math.isfinite(sum(d) + (sum(pos) if pos else 0.0)):
         return None
     new = tuple.__new__  # NamedTuple construction without its Python-level __new__ (hot path)

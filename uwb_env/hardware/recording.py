@@ -1,8 +1,11 @@
 """Session recording (JSON lines, flushed per record) and replay through the same parsers.
 
 Each line: ``{"t": seconds since the session began, "port": url, "dir": "rx"|"tx"|"event",
-"hex": bytes as hex}`` (or ``"event"``/``"detail"`` for connection events). A crash loses at
-most the record being written. :class:`ReplayTransport` serves a port's recorded ``rx`` bytes
+"hex": bytes as hex}`` (or ``"event"``/``"detail"`` for connection events). Each session
+starts with a ``{"dir": "session", "started": ISO time}`` line, so several sessions appended to
+one file stay apart (:func:`read_session` picks one, by default the last). A crash loses at
+most the record being written: a torn last line is ended before the next session's first
+record, never glued to it. :class:`ReplayTransport` serves a port's recorded ``rx`` bytes
 through the transport interface, so the drivers and decoders run unchanged on a recording.
 """
 
@@ -20,9 +23,14 @@ class SessionRecorder:
     def __init__(self, path: str | Path):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        torn = self.path.is_file() and self.path.stat().st_size > 0 and not _ends_with_newline(self.path)
         self._file = open(self.path, "a", buffering=1)  # line-buffered; we flush explicitly too
+        if torn:  # a crashed session's cut record: end it so it cannot swallow our first one
+            self._file.write("\n")
         self._lock = threading.Lock()
         self._t0 = time.monotonic()
+        self._file.write(json.dumps({"t": 0.0, "dir": "session", "started": time.strftime("%Y-%m-%dT%H:%M:%S")}) + "\n")
+        self._file.flush()
 
     def _write(self, record: dict) -> None:
         record = {"t": round(time.monotonic() - self._t0, 6), **record}
@@ -41,16 +49,38 @@ class SessionRecorder:
             self._file.close()
 
 
-def read_session(path: str | Path) -> list[dict]:
-    """All records; a last line cut by a crash is skipped."""
-    out = []
+def _ends_with_newline(path: Path) -> bool:
+    with open(path, "rb") as f:
+        f.seek(-1, 2)
+        return f.read(1) == b"\n"
+
+
+def read_sessions(path: str | Path) -> list[list[dict]]:
+    """The file's sessions, in order, each a list of records (session headers left out); lines
+    cut by a crash are skipped. Records before any header (older files) form a session."""
+    sessions: list[list[dict]] = [[]]
     with open(path) as f:
         for line in f:
             try:
-                out.append(json.loads(line))
+                record = json.loads(line)
             except json.JSONDecodeError:
                 continue
-    return out
+            if record.get("dir") == "session":
+                sessions.append([])
+            else:
+                sessions[-1].append(record)
+    return [s for i, s in enumerate(sessions) if s or i > 0]
+
+
+def read_session(path: str | Path, session: int = -1) -> list[dict]:
+    """The records of one session (default: the last one written)."""
+    sessions = read_sessions(path)
+    if not sessions:
+        return []
+    try:
+        return sessions[session]
+    except IndexError:
+        raise ValueError(f"session={session!r}: {path} holds {len(sessions)} session(s)") from None
 
 
 class ReplayTransport:
@@ -60,8 +90,8 @@ class ReplayTransport:
     diverges from the session raises instead of silently producing other data).
     """
 
-    def __init__(self, path: str | Path, port: str, strict: bool = False):
-        records = [r for r in read_session(path) if r.get("port") == port]
+    def __init__(self, path: str | Path, port: str, strict: bool = False, session: int = -1):
+        records = [r for r in read_session(path, session) if r.get("port") == port]
         self.url = f"replay:{port}"
         self._rx = bytearray(b"".join(bytes.fromhex(r["hex"]) for r in records if r["dir"] == "rx"))
         self._tx = b"".join(bytes.fromhex(r["hex"]) for r in records if r["dir"] == "tx")
@@ -70,7 +100,7 @@ class ReplayTransport:
         self.reconnections = sum(1 for r in records if r.get("event") == "reconnected")
         self.recorder = None
 
-    def write(self, data: bytes, pace_s: float = 0.0) -> None:
+    def write(self, data: bytes, pace_s: float = 0.0, wait_s: float | None = None) -> None:
         if self.strict:
             expected = self._tx[self._tx_pos:self._tx_pos + len(data)]
             if expected != data:

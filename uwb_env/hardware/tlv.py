@@ -111,7 +111,8 @@ def response_length(buffer: bytes) -> int | None:
     return i
 
 
-EXPECTED = {POS_GET: (POS_XYZ,), UPD_RATE_GET: (UPD_RATE,), CFG_GET: (CFG,), LOC_GET: (POS_XYZ,)}
+# loc_get: a tag without a position fix answers with its distance records only
+EXPECTED = {POS_GET: (POS_XYZ,), UPD_RATE_GET: (UPD_RATE,), CFG_GET: (CFG,), LOC_GET: ()}
 
 
 def decode_position(resp: Response) -> Position:

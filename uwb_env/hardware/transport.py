@@ -57,10 +57,11 @@ class SerialTransport:
         self._thread.start()
 
     # -- I/O -------------------------------------------------------------------------------------
-    def write(self, data: bytes, pace_s: float = 0.0) -> None:
+    def write(self, data: bytes, pace_s: float = 0.0, wait_s: float | None = None) -> None:
         """Write ``data`` (byte by byte with ``pace_s`` between bytes when > 0, for shells
-        that drop fast typing)."""
-        if not self.connected.wait(timeout=2 * self.backoff_s[1]):
+        that drop fast typing). While the port is away, wait up to ``wait_s`` (default: two
+        reconnection backoffs) for it to return, then raise :class:`PortError`."""
+        if not self.connected.wait(timeout=2 * self.backoff_s[1] if wait_s is None else wait_s):
             raise PortError(self.url, f"not connected ({self.last_error})")
         if self.recorder is not None:
             self.recorder.record(self.url, "tx", data)
