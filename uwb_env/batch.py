@@ -21,7 +21,7 @@ import numpy as np
 from uwb_env.config import EnvConfig
 from uwb_env.localization import calibrate_anchors, locate_tags, rigid_align
 from uwb_env.localization.errors import LocalizationError
-from uwb_env.localization.multilateration import refit_stuck_tags, track_tags_2d
+from uwb_env.localization.multilateration import refit_stuck_tags_2d, track_tags_2d
 from uwb_env.sim import World
 from uwb_env.sim.calibration_round import CalibrationRound
 from uwb_env.sim.motion import MotionModel
@@ -221,9 +221,9 @@ class BatchedSystem:
         else:
             pos, rms, _ = self._gauss_newton(sel, ranges[sel], None if cov is None else cov[sel])
             restart = solver.tag_restart_residual_m + 2.0 * np.sqrt(pred_var[sel].max(axis=1))
-            for row, k in enumerate(sel):  # rare: re-solve a copy's stuck tags from the closed form
-                refit_stuck_tags(self.anchors_est[k], ranges[k], pos[row], rms[row], restart[row], self.range_std_m,
-                                 None if cov is None else cov[k], solver.loss, solver.f_scale_sigmas)
+            # stuck tags of every copy re-solved from the closed form in one batch
+            refit_stuck_tags_2d(self.anchors_est[sel], ranges[sel], pos, rms, restart, self.range_std_m**2,
+                                None if cov is None else cov[sel], solver.loss, solver.f_scale_sigmas)
         ok = np.isfinite(pos).all(axis=2)
         old = self.tag_fix[sel]
         new = np.where(ok[..., None], pos, old)

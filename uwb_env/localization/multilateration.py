@@ -291,6 +291,40 @@ def refit_stuck_tags(anchors, ranges_m, positions, rms, threshold_m, range_std_m
     return idx
 
 
+def refit_stuck_tags_2d(anchors, ranges_m, positions, rms, threshold_m, range_var_m2, anchor_covariance=None,
+                        loss="linear", f_scale=2.0, iterations=10) -> np.ndarray:
+    """:func:`refit_stuck_tags` for many groups at once (the batched env): every stuck tag of
+    every group is solved again from the weighted closed form, refined by
+    :func:`track_tags_2d` with its own group's anchors, all in one batch; the lower residual
+    wins. In place on ``positions`` (S, M, 2) and ``rms`` (S, M); ``threshold_m`` (S,).
+    Returns the (group, tag) indices refit."""
+    stuck = ~(rms <= np.asarray(threshold_m)[:, None])
+    if not stuck.any():
+        return np.empty((0, 2), dtype=int)
+    g, t = np.nonzero(stuck)
+    a = anchors[g]  # (R, N, 2)
+    r = ranges_m[g, t]  # (R, N)
+    valid = np.isfinite(r)
+    rr = np.where(valid, r, 0.0)
+    # weighted closed form in (p, ||p||^2), one 3x3 system per row
+    design = np.concatenate([-2.0 * a, np.ones(a.shape[:2] + (1,))], axis=2)  # (R, N, 3)
+    rhs = rr**2 - (a**2).sum(2)
+    w = valid / np.maximum(4.0 * rr**2 * range_var_m2, 1e-12)
+    normal = np.einsum("rna,rn,rnb->rab", design, w, design) + 1e-12 * np.eye(3)
+    with np.errstate(invalid="ignore"):
+        start = np.linalg.solve(normal, np.einsum("rna,rn->ra", design, w * rhs)[..., None])[:, :2, 0].copy()
+    ok_start = (valid.sum(1) >= 3) & np.isfinite(start).all(1)
+    start[~ok_start] = 0.0
+    cov = None if anchor_covariance is None else anchor_covariance[g]
+    new_pos, new_rms, _ = track_tags_2d(a, start[:, None, :], r[:, None, :], range_var_m2, cov, loss, f_scale,
+                                        iterations)
+    new_pos, new_rms = new_pos[:, 0], new_rms[:, 0]
+    better = ok_start & np.isfinite(new_rms) & ~(new_rms >= rms[g, t])
+    positions[g[better], t[better]] = new_pos[better]
+    rms[g[better], t[better]] = new_rms[better]
+    return np.column_stack([g[better], t[better]])
+
+
 def track_tags_2d(anchors, previous, ranges_m, range_var_m2, anchor_covariance=None, loss="linear", f_scale=2.0,
                   iterations=2):
     """Warm-started planar Gauss-Newton for tracking: many groups of tags, each group against
@@ -334,7 +368,8 @@ def track_tags_2d(anchors, previous, ranges_m, range_var_m2, anchor_covariance=N
     for _ in range(iterations):
         d = p[..., None] - a
         dist = np.maximum(np.abs(d), 1e-12)
-        u = d / dist
+        with np.errstate(invalid="ignore"):  # a tag without a fix (NaN) stays NaN
+            u = d / dist
         res = dist - r
         u2 = u * u
         if anchor_covariance is not None:  # 1 / (sigma^2 + u^T C u)
