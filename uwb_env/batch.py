@@ -21,12 +21,12 @@ import numpy as np
 from uwb_env.config import EnvConfig
 from uwb_env.localization import calibrate_anchors, locate_tags, rigid_align
 from uwb_env.localization.errors import LocalizationError
-from uwb_env.localization.multilateration import refit_stuck_tags_2d, track_tags_2d
+from uwb_env.localization.multilateration import check_mirror_2d, refit_stuck_tags_2d, track_tags_2d
 from uwb_env.sim import World
 from uwb_env.sim.calibration_round import CalibrationRound
 from uwb_env.sim.motion import MotionModel
 from uwb_env.sim.odometry import OdometryModel
-from uwb_env.system import OBS_FIELDS, LocalizationSystem
+from uwb_env.system import OBS_FIELDS, LocalizationSystem, carry_to_round_midpoint
 
 
 class BatchedSystem:
@@ -98,9 +98,10 @@ class BatchedSystem:
             self._advance_world()
         true_mid = 0.5 * (true_start + self.anchors_true)
         for k in range(B):
-            result = calibrate_anchors(
-                self.range_model.correct_matrix(self.rounds[k].result()), dim=2, loss=cfg.solver.loss,
-                f_scale=cfg.solver.f_scale_sigmas, range_std_m=self.range_std_m)
+            matrix = carry_to_round_midpoint(self.range_model.correct_matrix(self.rounds[k].result()), self.rounds[k],
+                                             est_start[k], self.anchors_est[k], self.time_s)
+            result = calibrate_anchors(matrix, dim=2, loss=cfg.solver.loss, f_scale=cfg.solver.f_scale_sigmas,
+                                       range_std_m=self.range_std_m)
             rot, trans = rigid_align(true_mid[k], result.positions)
             self.frame_rot[k], self.frame_origin[k] = rot, -rot.T @ trans
             since_mid = (self.anchors_est[k] - 0.5 * (est_start[k] + self.anchors_est[k])) @ rot.T
@@ -168,18 +169,24 @@ class BatchedSystem:
         solver = self.config.solver
         est_mid = 0.5 * (self.est_at_round_start[k] + self.anchors_est[k])
         try:
-            result = calibrate_anchors(self.range_model.correct_matrix(rnd.result()), dim=2, prior=est_mid,
+            matrix = carry_to_round_midpoint(self.range_model.correct_matrix(rnd.result()), rnd,
+                                             self.est_at_round_start[k], self.anchors_est[k], self.time_s)
+            result = calibrate_anchors(matrix, dim=2, prior=est_mid,
                                        gauge=solver.gauge, loss=solver.loss, f_scale=solver.f_scale_sigmas,
                                        range_std_m=self.range_std_m,
                                        prior_std_m=np.sqrt(np.maximum(self._predicted_var_of(k), self.range_std_m**2)))
         except LocalizationError:
+            return False
+        if result.status == "not_converged":  # as the single env: keep odometry, report the failure
             return False
         self._apply(k, result, self.anchors_est[k] - est_mid)
         return True
 
     def _apply(self, k: int, result, since_mid: np.ndarray) -> None:
         self.anchors_est[k] = result.positions + since_mid
-        self.anchor_cov[k] = result.anchor_covariance()
+        # as the single env: a poor fit's covariance scaled by its reduced chi-square
+        scale = max(1.0, result.chi2 / max(result.dof, 1)) if result.status == "poor_fit" else 1.0
+        self.anchor_cov[k] = scale * result.anchor_covariance()
         self.calibration_var_m2[k] = np.trace(self.anchor_cov[k], axis1=1, axis2=2)
         self.last_calibration_rms_m[k] = result.rms_residual_m
         self.calibration_count[k] += 1
@@ -224,6 +231,10 @@ class BatchedSystem:
             # stuck tags of every copy re-solved from the closed form in one batch
             refit_stuck_tags_2d(self.anchors_est[sel], ranges[sel], pos, rms, restart, self.range_std_m**2,
                                 None if cov is None else cov[sel], solver.loss, solver.f_scale_sigmas)
+            # as the single env: a fix the ranges reject in favour of its mirror is replaced
+            var = self.range_std_m**2 + pred_var[sel].mean(axis=1) / 2  # per copy, as the single env's
+            pos, _, _ = check_mirror_2d(self.anchors_est[sel], pos, ranges[sel], var,
+                                        None if cov is None else cov[sel], solver.loss, solver.f_scale_sigmas)
         ok = np.isfinite(pos).all(axis=2)
         old = self.tag_fix[sel]
         new = np.where(ok[..., None], pos, old)

@@ -36,6 +36,34 @@ from uwb_env.sim import RangeModel, World
 CALIBRATION_FIT_NAMES = ("ok", "poor_fit", "not_converged")
 
 
+def carry_to_round_midpoint(matrix, finished, est_start: np.ndarray, est_now: np.ndarray, now_s: float):
+    """Each ordered pair's mean range carried to the round's midpoint geometry.
+
+    The pairs are ranged one after another while the robots move (a round lasts about a
+    second at ~0.5 m/s), so the matrix mixes geometries tens of centimetres apart: no single
+    shape explains it within the range noise, and the fit test would flag most rounds. With
+    each anchor's odometry velocity over the round (``est_start`` -> ``est_now``) and the
+    schedule's exchange times, a pair ranged at t is corrected by its range rate:
+    r_mid = r - u_ij . (v_i - v_j) (t - t_mid). Rounds without exchange times (hardware) are
+    returned unchanged."""
+    times = getattr(finished, "times_s", None)
+    span = now_s - finished.start_time_s
+    if times is None or span <= 0:
+        return matrix
+    n = len(est_now)
+    t_sum, t_cnt = np.zeros((n, n)), np.zeros((n, n))
+    np.add.at(t_sum, (finished.initiator, finished.responder), times)
+    np.add.at(t_cnt, (finished.initiator, finished.responder), 1.0)
+    t_pair = t_sum / np.maximum(t_cnt, 1.0) - (finished.start_time_s + 0.5 * span)
+    velocity = (est_now - est_start) / span
+    est_mid = 0.5 * (est_start + est_now)
+    diff = est_mid[:, None, :] - est_mid[None, :, :]
+    dist = np.sqrt((diff * diff).sum(-1))
+    np.fill_diagonal(dist, 1.0)
+    rate = ((diff / dist[..., None]) * (velocity[:, None, :] - velocity[None, :, :])).sum(-1)
+    return replace(matrix, mean_m=matrix.mean_m - rate * t_pair)
+
+
 def _first_rank(result) -> tuple:
     """Order of preference among first-calibration results that are not clean."""
     return (CALIBRATION_FIT_NAMES.index(result.status), result.ambiguous, result.chi2 / max(result.dof, 1))
@@ -276,29 +304,8 @@ class LocalizationSystem:
         self.calibration_chi2_per_dof = result.chi2 / result.dof if result.dof > 0 else 0.0
 
     def _to_round_midpoint(self, matrix, finished, est_mid: np.ndarray):
-        """Each ordered pair's mean range carried to the round's midpoint geometry.
-
-        The pairs are ranged one after another while the robots move (a round lasts about a
-        second at ~0.5 m/s), so the matrix mixes geometries tens of centimetres apart: no single
-        shape explains it within the range noise, and the fit test would flag most rounds. With
-        each anchor's odometry velocity over the round and the schedule's exchange times, a
-        pair ranged at t is corrected by the range rate: r_mid = r - u_ij . (v_i - v_j) (t - t_mid).
-        Rounds without exchange times (hardware) are returned unchanged."""
-        times = getattr(finished, "times_s", None)
-        span = self.world.time_s - finished.start_time_s
-        if times is None or span <= 0:
-            return matrix
-        n = self.n_anchors
-        t_sum, t_cnt = np.zeros((n, n)), np.zeros((n, n))
-        np.add.at(t_sum, (finished.initiator, finished.responder), times)
-        np.add.at(t_cnt, (finished.initiator, finished.responder), 1.0)
-        t_pair = t_sum / np.maximum(t_cnt, 1.0) - (finished.start_time_s + 0.5 * span)
-        velocity = (self.world.anchors_est - self._est_at_round_start) / span
-        diff = est_mid[:, None, :] - est_mid[None, :, :]
-        dist = np.sqrt((diff * diff).sum(-1))
-        np.fill_diagonal(dist, 1.0)
-        rate = ((diff / dist[..., None]) * (velocity[:, None, :] - velocity[None, :, :])).sum(-1)
-        return replace(matrix, mean_m=matrix.mean_m - rate * t_pair)
+        return carry_to_round_midpoint(matrix, finished, self._est_at_round_start, self.world.anchors_est,
+                                       self.world.time_s)
 
     def _finish_anchor_round(self, finished) -> str | None:
         """One anchor re-located against the others (their estimates and covariances as known up

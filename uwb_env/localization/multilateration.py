@@ -362,7 +362,7 @@ def track_tags_2d(anchors, previous, ranges_m, range_var_m2, anchor_covariance=N
         iv = np.full(ranges_m.shape, 1.0 / range_var_m2) if complete else valid / range_var_m2
     else:
         c00, c01, c11 = anchor_covariance[..., 0, 0], anchor_covariance[..., 0, 1], anchor_covariance[..., 1, 1]
-        var0 = (range_var_m2 + 0.5 * (c00 + c11))[:, None, :]
+        var0 = range_var_m2 + 0.5 * (c00 + c11)[:, None, :]  # range_var_m2: scalar or (S, 1, 1)
         k_conj = (0.5 * (c00 - c11) - 1j * c01)[:, None, :]
     linear = loss == "linear"
     for _ in range(iterations):
@@ -481,13 +481,19 @@ def check_mirror_2d(anchors, positions, ranges_m, range_var_m2, anchor_covarianc
     - no finite fix: ``TAG_NO_FIX``.
 
     Args: as :func:`track_tags_2d` (``anchors`` (S, N, 2), ``positions`` (S, M, 2) the fixes,
-    ``ranges_m`` (S, M, N)). ``margin_chi2``: chi-square margin (10.83 = 1 dof at 1e-3).
+    ``ranges_m`` (S, M, N), ``range_var_m2`` a scalar or one per group (S,)). ``margin_chi2``:
+    chi-square margin (10.83 = 1 dof at 1e-3).
     Returns ``(positions, status, switched)``: positions with rejected fixes replaced, status
     (S, M) int8, switched (S, M) bool.
     """
     anchors = np.asarray(anchors, dtype=float)
     positions = np.array(positions, dtype=float)
     s, m = positions.shape[:2]
+    var = np.asarray(range_var_m2, dtype=float)
+    if var.size > 1:  # one variance per group
+        range_var_m2, var_kernel = var.reshape(-1, 1), var.reshape(-1, 1, 1)
+    else:
+        range_var_m2 = var_kernel = var.item()
     status = np.full((s, m), TAG_OK, dtype=np.int8)
     switched = np.zeros((s, m), dtype=bool)
     fixed = np.isfinite(positions).all(-1)
@@ -516,7 +522,7 @@ def check_mirror_2d(anchors, positions, ranges_m, range_var_m2, anchor_covarianc
     if not candidate.any():
         return positions, status, switched
     start = np.where(candidate[..., None], np.stack([zm.real, zm.imag], -1), positions)
-    refined, _, _ = track_tags_2d(anchors, start, ranges_m, range_var_m2, anchor_covariance, loss, f_scale,
+    refined, _, _ = track_tags_2d(anchors, start, ranges_m, var_kernel, anchor_covariance, loss, f_scale,
                                   iterations)
     zr = refined[..., 0] + 1j * refined[..., 1]
     c_mir, _ = chi2(zr)
