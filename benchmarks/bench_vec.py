@@ -1,0 +1,207 @@
+"""Throughput of the batched mode beside VMAS and MPE, in one run (issue: one vectorized core).
+
+Figures (the issue's keys), each contender timed in alternating blocks so that this VM's speed
+drifts hit all alike:
+
+- ``batched_copy_steps_per_s_b1024`` / ``_b4096``: the batched vector env without calibrations;
+  ``vmas_simple_spread_copy_steps_per_s_b4096`` (CPU, one torch thread) and their ratio
+  ``batched_over_vmas_b4096``;
+- ``batched_fixed10_over_nocal_b1024``: with a calibration every 10 steps per copy;
+- ``single_fixed10_over_mpe``: one scheduler env with ``fixed:10`` vs PettingZoo MPE
+  ``simple_spread`` (mpe2), steps/s;
+- ``reset_s_b4096``: one reset of 4096 copies;
+- ``sb3_ppo_steps_per_s_default`` (PPO on ``uwb-env train``'s default path, DummyVecEnv(8) of
+  the scheduler env) and ``sb3_ppo_over_dummy8`` (the batched path, 32 copies, over it);
+- ``--before REV``: the batched figure at B = 1024 of another revision, measured in the same
+  run (a temporary worktree, a subprocess of this interpreter) -> ``batched_b1024_over_before``.
+
+    python benchmarks/bench_vec.py [--quick] [--before af25bf1]
+
+Writes benchmarks/results/bench_vec.json (``_quick`` with --quick). Needs the ``bench`` extra
+(vmas, mpe2) and ``train`` (SB3) for every figure; a missing one is reported as missing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import print_table, write_results  # noqa: E402
+
+
+def batched_stepper(b: int, fixed: int | None = None):
+    from uwb_env.env.vector_env import CalibrationSchedulingVectorEnv
+
+    env = CalibrationSchedulingVectorEnv(num_envs=b)
+    env.reset(seed=0)
+    t = [0]
+
+    def step():
+        t[0] += 1
+        if fixed is None:
+            env.step(np.zeros(b, dtype=np.int64))
+        else:
+            env.step(((np.arange(b) + t[0]) % fixed == 0).astype(np.int64))
+
+    return step
+
+
+def vmas_stepper(b: int):
+    try:
+        import torch
+        import vmas
+    except ImportError:
+        return None
+    torch.set_num_threads(1)
+    env = vmas.make_env("simple_spread", num_envs=b, device="cpu", continuous_actions=True, seed=0)
+    env.reset()
+    actions = [torch.zeros(b, 2) for _ in env.agents]
+    return lambda: env.step(actions)
+
+
+def single_fixed10_stepper():
+    from uwb_env.env.scheduler_env import CalibrationSchedulingEnv
+
+    env = CalibrationSchedulingEnv(max_cycles=10**9)
+    env.reset(seed=0)
+    t = [0]
+
+    def step():
+        t[0] += 1
+        env.step(int(t[0] % 10 == 0))
+
+    return step
+
+
+def mpe_stepper():
+    try:
+        from mpe2 import simple_spread_v3
+    except ImportError:
+        return None
+    env = simple_spread_v3.parallel_env(max_cycles=10**9)
+    env.reset(seed=0)
+    actions = {a: 0 for a in env.agents}
+    return lambda: env.step(actions)
+
+
+def alternating(steppers: dict, per_call: dict, seconds: float, rounds: int) -> dict:
+    """Best rate (copies x calls per second) of each stepper over alternating timed blocks."""
+    best = {k: 0.0 for k in steppers}
+    for _ in range(rounds):
+        for name, fn in steppers.items():
+            calls, t0 = 0, time.perf_counter()
+            while time.perf_counter() - t0 < seconds / rounds:
+                fn()
+                calls += 1
+            best[name] = max(best[name], per_call[name] * calls / (time.perf_counter() - t0))
+    return best
+
+
+def ppo_rate(kind: str, n_envs: int, steps: int) -> float | None:
+    try:
+        from stable_baselines3 import PPO
+    except ImportError:
+        return None
+    import torch
+    from uwb_env.training.train import make_vec_env
+
+    from uwb_env.config import EnvConfig
+
+    torch.set_num_threads(1)
+    venv = make_vec_env(kind, n_envs, EnvConfig().to_dict(), seed=0)
+    model = PPO("MlpPolicy", venv, n_steps=max(steps // n_envs, 16), batch_size=256, n_epochs=1, seed=0,
+                verbose=0, device="cpu")
+    t0 = time.perf_counter()
+    model.learn(total_timesteps=steps)
+    return model.num_timesteps / (time.perf_counter() - t0)
+
+
+def before(rev: str, seconds: float) -> float:
+    root = Path(__file__).resolve().parents[1]
+    with tempfile.TemporaryDirectory() as tmp:
+        tree = Path(tmp) / "tree"
+        subprocess.run(["git", "-C", str(root), "worktree", "add", "--detach", str(tree), rev], check=True,
+                       capture_output=True)
+        try:
+            code = (f"import sys, json; sys.path.insert(0, {str(Path(__file__).parent)!r}); import bench_vec as b; "
+                    f"print(json.dumps(b.alternating({{'x': b.batched_stepper(1024)}}, {{'x': 1024}}, {seconds}, 3)"
+                    f"['x']))")
+            out = subprocess.run([sys.executable, "-c", code], env=dict(os.environ, PYTHONPATH=str(tree)),
+                                 check=True, capture_output=True, text=True, cwd=tree)
+            return float(out.stdout.strip().splitlines()[-1])
+        finally:
+            subprocess.run(["git", "-C", str(root), "worktree", "remove", "--force", str(tree)], capture_output=True)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--before", default=None, help="a git revision whose batched B=1024 rate is set beside")
+    args = parser.parse_args()
+    seconds = 3.0 if args.quick else 12.0
+    fig: dict = {}
+
+    from uwb_env.env.vector_env import CalibrationSchedulingVectorEnv
+
+    env = CalibrationSchedulingVectorEnv(num_envs=4096)
+    t0 = time.perf_counter()
+    env.reset(seed=0)
+    fig["reset_s_b4096"] = time.perf_counter() - t0
+    del env
+
+    steppers = {"batched_b1024": batched_stepper(1024), "batched_b1024_fixed10": batched_stepper(1024, 10),
+                "batched_b4096": batched_stepper(4096)}
+    per_call = {"batched_b1024": 1024, "batched_b1024_fixed10": 1024, "batched_b4096": 4096}
+    vm = vmas_stepper(4096)
+    if vm is not None:
+        steppers["vmas_b4096"], per_call["vmas_b4096"] = vm, 4096
+    rates = alternating(steppers, per_call, seconds, 3)
+    single = {"single_fixed10": single_fixed10_stepper()}
+    mpe = mpe_stepper()
+    if mpe is not None:
+        single["mpe"] = mpe
+    rates.update(alternating(single, {k: 1 for k in single}, seconds / 2, 3))
+
+    fig["batched_copy_steps_per_s_b1024"] = rates["batched_b1024"]
+    fig["batched_copy_steps_per_s_b4096"] = rates["batched_b4096"]
+    fig["batched_fixed10_copy_steps_per_s_b1024"] = rates["batched_b1024_fixed10"]
+    fig["batched_fixed10_over_nocal_b1024"] = rates["batched_b1024_fixed10"] / rates["batched_b1024"]
+    fig["single_fixed10_steps_per_s"] = rates["single_fixed10"]
+    if vm is not None:
+        fig["vmas_simple_spread_copy_steps_per_s_b4096"] = rates["vmas_b4096"]
+        fig["batched_over_vmas_b4096"] = rates["batched_b4096"] / rates["vmas_b4096"]
+    if mpe is not None:
+        fig["mpe_simple_spread_steps_per_s"] = rates["mpe"]
+        fig["single_fixed10_over_mpe"] = rates["single_fixed10"] / rates["mpe"]
+    steps = 2048 if args.quick else 16384
+    default, batched = ppo_rate("scheduler", 8, steps), ppo_rate("batched", 32, steps)
+    if default is not None:
+        fig["sb3_ppo_steps_per_s_default"] = default
+        fig["sb3_ppo_steps_per_s_batched32"] = batched
+        fig["sb3_ppo_over_dummy8"] = batched / default  # the default path is DummyVecEnv(8) today
+    if args.before:
+        fig["before_revision"] = args.before
+        fig["batched_copy_steps_per_s_b1024_before"] = before(args.before, seconds)
+        fig["batched_b1024_over_before"] = fig["batched_copy_steps_per_s_b1024"] / fig[
+            "batched_copy_steps_per_s_b1024_before"]
+
+    rows = [[k, v] for k, v in fig.items() if isinstance(v, float)]
+    print_table("Batched mode throughput (copy-steps/s; ratios side by side in one run)", ["figure", "value"], rows)
+    write_results("bench_vec_quick" if args.quick else "bench_vec", fig, args.quick)
+    print(json.dumps({k: fig[k] for k in ("batched_over_vmas_b4096", "batched_fixed10_over_nocal_b1024")
+                      if k in fig}))
+
+
+if __name__ == "__main__":
+    main()
