@@ -20,6 +20,7 @@ import numpy as np
 
 from uwb_env.config import EnvConfig
 from uwb_env.localization import calibrate_anchors, locate_tags, rigid_align
+from uwb_env.localization.batched_calibration import calibrate_with_priors
 from uwb_env.localization.errors import LocalizationError
 from uwb_env.localization.multilateration import check_mirror_2d, refit_stuck_tags_2d, track_tags_2d
 from uwb_env.sim import World
@@ -131,9 +132,9 @@ class BatchedSystem:
             if rnd is None:
                 continue
             busy[k] = (min(rnd.end_time_s, self.time_s) - max(rnd.start_time_s, t0)) / self.dt_s
-            if rnd.done:
-                finished[k] = True
-                failed[k] = not self._finish_round(k)
+            finished[k] = rnd.done
+        if finished.any():
+            failed[finished] = ~self._finish_rounds(np.flatnonzero(finished))
         self.time_calibrating_s += busy * self.dt_s
         in_round = np.array([r is not None for r in self.rounds]) | finished
         # tags hold during rounds (and on the step a round ends, like the single env)
@@ -164,13 +165,39 @@ class BatchedSystem:
         self.rounds[k] = CalibrationRound(self.N, self.timing, k_pairs, self.time_s)
         self.est_at_round_start[k] = self.anchors_est[k]
 
-    def _finish_round(self, k: int) -> bool:
-        rnd, self.rounds[k] = self.rounds[k], None
+    def _finish_rounds(self, copies: np.ndarray) -> np.ndarray:
+        """Solve the rounds that finished this step: the usual case (every pair, a fit the
+        verdict accepts) in one batched Gauss-Newton, the rest with the full solver per copy
+        (the same answers: ``calibrate_with_priors`` hands back whatever needs more)."""
+        est_mid = 0.5 * (self.est_at_round_start[copies] + self.anchors_est[copies])
+        ok = np.zeros(len(copies), dtype=bool)
+        matrices, rows = [], []
+        for row, k in enumerate(copies):
+            rnd = self.rounds[k]
+            try:
+                matrices.append(carry_to_round_midpoint(self.range_model.correct_matrix(rnd.result()), rnd,
+                                                        self.est_at_round_start[k], self.anchors_est[k], self.time_s))
+                rows.append(row)
+            except LocalizationError:  # as the single env: keep odometry, report the failure
+                self.rounds[k] = None
+        solver = self.config.solver
+        batched = calibrate_with_priors(matrices, est_mid[rows], self.range_std_m, solver.loss,
+                                        solver.f_scale_sigmas, solver.gauge)
+        for row, result, matrix in zip(rows, batched, matrices, strict=True):
+            k = copies[row]
+            if result is not None:
+                self.rounds[k] = None
+                self._apply(k, result, self.anchors_est[k] - est_mid[row])
+                ok[row] = True
+            else:
+                ok[row] = self._finish_round(k, matrix)
+        return ok
+
+    def _finish_round(self, k: int, matrix) -> bool:
+        self.rounds[k] = None
         solver = self.config.solver
         est_mid = 0.5 * (self.est_at_round_start[k] + self.anchors_est[k])
         try:
-            matrix = carry_to_round_midpoint(self.range_model.correct_matrix(rnd.result()), rnd,
-                                             self.est_at_round_start[k], self.anchors_est[k], self.time_s)
             result = calibrate_anchors(matrix, dim=2, prior=est_mid,
                                        gauge=solver.gauge, loss=solver.loss, f_scale=solver.f_scale_sigmas,
                                        range_std_m=self.range_std_m,
