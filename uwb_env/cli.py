@@ -156,6 +156,8 @@ def _emulate_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--garbage", type=float, default=0.0, help="fault: probability of garbage bytes per chunk")
     p.add_argument("--drop-chars", type=float, default=0.0, help="fault: probability per dropped character")
     p.add_argument("--delay", type=float, default=0.0, help="fault: extra response latency (s)")
+    p.add_argument("--tag-firmware", choices=("pans", "tiers"), default="pans",
+                   help="tags: stock PANS (ranging to a PANS anchor set) or the TIERS localization build")
 
 
 def _emulate(args: argparse.Namespace) -> int:
@@ -169,16 +171,22 @@ def _emulate(args: argparse.Namespace) -> int:
     scene = Scene(SimConfig.from_dict(load_overrides(args.config)), seed=args.seed)
     faults = {"anchor": Faults(hang=args.hang_anchor, truncate_row_probability=args.truncate_rows, **common)}
     faults |= {f"tag_{i}": Faults(**common) for i in range(scene.config.n_tags)}
-    emu, urls = standard_setup(scene, faults, transport="socket" if args.socket else "pty", seed=args.seed)
+    emu, urls = standard_setup(scene, faults, transport="socket" if args.socket else "pty", seed=args.seed,
+                               tag_firmware=args.tag_firmware)
     print("Emulated DWM1001 devices (115200 8N1):")
     print(f"  {'anchor':8s} {urls['anchor']:32s} TIERS autocalibration firmware, anchor ID 1 (send b'S')")
     for name, url in urls.items():
         if name != "anchor":
-            print(f"  {name:8s} {url:32s} PANS tag (generic TLV mode; two \\r for the shell)")
+            what = ("TIERS localization tag (send b'S' to start)" if args.tag_firmware == "tiers"
+                    else "PANS tag (generic TLV mode; two \\r for the shell)")
+            print(f"  {name:8s} {url:32s} {what}")
     from uwb_env.hardware.emulator import emulated_anchor_ids
 
-    print(f"The tags range to PANS anchors with IDs {', '.join(emulated_anchor_ids())} "
-          "(connect(..., pans_anchor_ids=...)).")
+    if args.tag_firmware == "tiers":
+        print("The tags range to TIERS responders with IDs 1-4 (connect(..., tag_firmware='tiers')).")
+    else:
+        print(f"The tags range to PANS anchors with IDs {', '.join(emulated_anchor_ids())} "
+              "(connect(..., pans_anchor_ids=...)).")
     print("Ctrl-C stops.", flush=True)
     try:
         with emu:

@@ -2,7 +2,8 @@
 
 :class:`HardwareWorld` is what :class:`~uwb_env.system.LocalizationSystem` steps instead of
 the simulated world: calibration rounds send the TIERS start byte and wait for the real
-matrix; tag ranges come from the tags' ``lec`` streams; anchor motion comes from a
+matrix; tag ranges come from the tags (stock-PANS ``lec`` streams, or the lines of tags
+running the TIERS localization build); anchor motion comes from a
 user-supplied odometry source (a callable returning each anchor's displacement since the
 last call) or the anchors are declared static. There is no ground truth: ``anchors_true`` and
 ``tags_true`` are NaN, so truth-based metrics are NaN and the env uses its residual proxy.
@@ -23,8 +24,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from uwb_env.config import ConfigBase, SimConfig
-from uwb_env.hardware.drivers import PansShellTagDriver, TiersAnchorDriver
+from uwb_env.hardware.drivers import PansShellTagDriver, TiersAnchorDriver, TiersTagDriver
 from uwb_env.hardware.errors import HardwareError
+from uwb_env.hardware.tiers import unwrap_negative_means
 from uwb_env.localization.errors import LocalizationError
 from uwb_env.measurements import RangeMatrix
 from uwb_env.sim.calibration_round import RoundTiming
@@ -78,8 +80,9 @@ class HardwareRound:
 
 
 class HardwareWorld(RoundRunner):
-    """See the module docstring. ``tags`` are shell drivers (one per tag) in anchor-ID order
-    ``anchor_ids`` (the ID4 labels the tags report for anchors 0..N-1)."""
+    """See the module docstring. ``tags``: one driver per tag, all of one firmware: PANS shell
+    drivers (``anchor_ids``: the ID4 labels the tags report for anchors 0..N-1, in order) or
+    TIERS tag drivers (anchor IDs 1..4 are anchors 0..3; ``anchor_ids`` is not needed)."""
 
     has_ground_truth = False
 
@@ -96,6 +99,13 @@ class HardwareWorld(RoundRunner):
         self.config = config
         self.hardware = hardware or HardwareConfig()
         self.anchor, self.tags = anchor, tags
+        tiers_tags = [isinstance(t, TiersTagDriver) for t in tags]
+        if any(tiers_tags) and not all(tiers_tags):
+            raise RadioCompatibilityError("tags: TIERS-build and PANS tags in one deployment range to different "
+                                          "anchor sets; use one tag firmware")
+        self.tag_firmware = "tiers" if tags and all(tiers_tags) else "pans"
+        if self.tag_firmware == "tiers" and anchor_ids is None:
+            anchor_ids = list(TiersTagDriver.ANCHOR_IDS)
         if anchor_ids is None:
             raise ValueError("anchor_ids: the IDs (4 hex digits, e.g. '1151') the tags report for anchors "
                              f"0..{config.n_anchors - 1}, in anchor order; `uwb-env emulate` prints the emulator's")
@@ -105,11 +115,15 @@ class HardwareWorld(RoundRunner):
         self.anchor_ids = anchor_ids
         for tag in tags:
             tag.watchdog_s = self.hardware.tag_watchdog_s
-        self.tag_ranges_rejected = 0  # lec ranges inconsistent with their own line (damaged)
+        self._inconsistent_ranges = 0  # lec ranges inconsistent with their own line (damaged)
+        self.means_unwrapped = 0  # TIERS matrix cells whose negative mean had wrapped (uint8)
+        self.means_wrap_ambiguous = 0  # pairs where both directions may have wrapped
         self.unknown_anchor_ids: set[str] = set()  # IDs the tags reported that are not in anchor_ids
         self.range_model = range_model or RangeModel(config.ranging)
-        # What the estimator undoes, per firmware (stock PANS is usually antenna-delay calibrated).
-        self.tag_correction = self._correction(self.hardware.pans_correct_bias)
+        # What the estimator undoes, per firmware (stock PANS is usually antenna-delay calibrated;
+        # TIERS tags run the same SS-TWR code as the calibration build, with its bias).
+        tag_bias = self.hardware.tiers_correct_bias if self.tag_firmware == "tiers" else self.hardware.pans_correct_bias
+        self.tag_correction = self._correction(tag_bias)
         self.round_correction = self._correction(self.hardware.tiers_correct_bias)
         self.timing = RoundTiming.fit(config.calibration)
         self.odometry = OdometryModel(config.odometry)  # its variance model predicts the drift
@@ -161,10 +175,13 @@ class HardwareWorld(RoundRunner):
             return
         if message is not None:
             rnd.done = True
-            valid = message.mean_m > 0
+            mean, unwrapped, ambiguous = unwrap_negative_means(message.mean_m)
+            self.means_unwrapped += unwrapped
+            self.means_wrap_ambiguous += ambiguous
+            valid = mean != 0  # 0: a cell the firmware never filled (a negative mean is a real reading)
             np.fill_diagonal(valid, False)
             k = self.config.calibration.measurements_per_pair
-            rnd.matrix = RangeMatrix(np.where(valid, message.mean_m, np.nan), np.where(valid, message.std_m, np.nan),
+            rnd.matrix = RangeMatrix(np.where(valid, mean, np.nan), np.where(valid, message.std_m, np.nan),
                                      np.where(valid, k, 0))
 
     def _correction(self, correct_bias: bool) -> RangeModel:
@@ -193,8 +210,14 @@ class HardwareWorld(RoundRunner):
                 elif self._consistent(r, report.position_m):
                     out[self.anchor_ids.index(r.anchor_id), t] = r.distance_m
                 else:
-                    self.tag_ranges_rejected += 1
+                    self._inconsistent_ranges += 1
         return out
+
+    @property
+    def tag_ranges_rejected(self) -> int:
+        """Tag ranges thrown away as damaged or implausible: ``lec`` ranges inconsistent with
+        their own line, TIERS ranges with an implausible spread (see :class:`TiersTagDriver`)."""
+        return self._inconsistent_ranges + sum(getattr(t, "ranges_rejected", 0) for t in self.tags)
 
     def _consistent(self, r, position_m) -> bool:
         """The range agrees with the tag's own position estimate in the same line (when the
@@ -244,12 +267,16 @@ class RadioCompatibilityError(HardwareError, ValueError):
 
 
 def connect(config: SimConfig, anchor_url: str, tag_urls: list[str], *, pans_anchor_ids: list[str] | None = None,
-            hardware: HardwareConfig | None = None, recorder=None, odometry_source=None, move_callback=None,
-            shell_pace_s: float = 0.0) -> HardwareWorld:
+            tag_firmware: str = "pans", hardware: HardwareConfig | None = None, recorder=None,
+            odometry_source=None, move_callback=None, shell_pace_s: float = 0.0) -> HardwareWorld:
     """Open the ports (recording every byte when ``recorder`` is given) and build the backend.
 
     ``anchor_url``: TIERS autocalibration anchor ID 1 (calibration rounds); ``tag_urls``: one
-    stock-PANS tag per simulated tag slot, streaming ``lec``.
+    tag per simulated tag slot. ``tag_firmware="tiers"`` (all-TIERS): the tags run the TIERS
+    localization build and range to boards running its ``Localization/Responders`` build with
+    IDs 1..4 (anchors 0..3), one per robot beside the calibration anchor (the repository's
+    calibration and localization builds are separate).
+    ``tag_firmware="pans"`` (default): stock-PANS tags streaming ``lec``.
 
     Radio compatibility: the TIERS builds use their own frames and preamble code 10, stock PANS
     code 9 and its own TDMA MAC, so a PANS tag cannot range to anchors running TIERS firmware.
@@ -260,13 +287,21 @@ def connect(config: SimConfig, anchor_url: str, tag_urls: list[str], *, pans_anc
     """
     from uwb_env.hardware.transport import SerialTransport
 
-    if tag_urls and pans_anchor_ids is None:
+    if tag_firmware not in ("pans", "tiers"):
+        raise ValueError(f"tag_firmware={tag_firmware!r}: expected 'pans' or 'tiers'")
+    if tag_firmware == "tiers" and pans_anchor_ids is not None:
+        raise RadioCompatibilityError("pans_anchor_ids: TIERS tags range to the TIERS anchors (IDs 1..4), not to "
+                                      "PANS anchors; leave pans_anchor_ids out")
+    if tag_firmware == "pans" and tag_urls and pans_anchor_ids is None:
         raise RadioCompatibilityError(
             "pans_anchor_ids: stock-PANS tags cannot range to anchors running the TIERS firmware (different "
             "frames and preamble codes); give the IDs of the PANS anchors the tags range to (one per robot, "
             "in anchor order), e.g. pans_anchor_ids=['1150', '1151', '1152', '1153']")
     hardware = hardware or HardwareConfig()
     anchor = TiersAnchorDriver(SerialTransport(anchor_url, recorder=recorder), hardware.round_timeout_s)
-    tags = [PansShellTagDriver(SerialTransport(url, recorder=recorder), pace_s=shell_pace_s) for url in tag_urls]
+    if tag_firmware == "tiers":
+        tags = [TiersTagDriver(SerialTransport(url, recorder=recorder)) for url in tag_urls]
+    else:
+        tags = [PansShellTagDriver(SerialTransport(url, recorder=recorder), pace_s=shell_pace_s) for url in tag_urls]
     return HardwareWorld(config, anchor, tags, hardware, anchor_ids=pans_anchor_ids,
                          odometry_source=odometry_source, move_callback=move_callback)

@@ -1,4 +1,4 @@
-"""Device drivers over a transport: the TIERS autocalibration anchor and PANS tags.
+"""Device drivers over a transport: the TIERS autocalibration anchor, TIERS and PANS tags.
 
 Drivers own the protocol rules learned in the field (see ``docs`` and the codecs): the TIERS
 start byte is ``S`` alone and a round that never ends is reported with the round number;
@@ -9,13 +9,23 @@ first and walk the answer by TLVs.
 from __future__ import annotations
 
 import time
+from collections import deque
 
 import numpy as np
 
 from uwb_env.hardware import tlv
 from uwb_env.hardware.errors import DeviceTimeout, HardwareError, ParseError, PortError
-from uwb_env.hardware.pans_shell import PROMPT, GenericModeError, LocationReport, ShellDecoder
-from uwb_env.hardware.tiers import START, Banner, RangeMatrixMessage, RejectedMatrix, TiersDecoder, WaitingForStart
+from uwb_env.hardware.pans_shell import PROMPT, AnchorRange, GenericModeError, LocationReport, ShellDecoder
+from uwb_env.hardware.tiers import (
+    BANNER_INIT,
+    START,
+    Banner,
+    RangeMatrixMessage,
+    RejectedMatrix,
+    TiersDecoder,
+    WaitingForStart,
+)
+from uwb_env.hardware.tiers_tag import OtherTagLine, RejectedTagLine, TiersTagDecoder, TiersTagLine
 
 
 class RoundFailed(HardwareError):
@@ -285,6 +295,127 @@ class PansShellTagDriver:
             if time.monotonic() >= deadline:
                 return False
             time.sleep(0.01)
+
+
+class TiersTagDriver:
+    """A tag running the TIERS localization build (``Localization/Initiator``).
+
+    Its ``main`` loop reads at most one UART byte per iteration into a latched flag and polls
+    the next anchor only while that flag is ``S``; ``F`` prints ``END`` and leaves the loop for
+    good (until a reset), any other byte pauses it. After power-up it prints its banner and
+    waits. So the driver sends ``S`` (idempotent: the flag is latched) when no line arrives,
+    never ``F``, and again after a reboot (the banner, a port reconnection or a silence longer
+    than ``watchdog_s``: an anchor that does not answer costs 25 polls of 65 ms per line).
+
+    The same surface as :class:`PansShellTagDriver` for :class:`~uwb_env.hardware.backend.HardwareWorld`:
+    ``poll()`` returns the reports that arrived, ``latest`` / ``latest_time`` hold the newest.
+    Anchors are named ``"1"`` .. ``"4"`` (the TIERS anchor IDs; anchor index = ID - 1). Ranges
+    of anchors that did not answer (255 bytes) are absent; ranges whose std exceeds
+    ``max_std_m`` (a partial sum leaked from a timed-out anchor, see
+    :mod:`~uwb_env.hardware.tiers_tag`) or that jump more than ``max_jump_m`` from the anchor's
+    recent readings (a character lost inside a byte) are dropped and counted in
+    ``ranges_rejected``; damaged lines are counted in ``lines_rejected``.
+    """
+
+    ANCHOR_IDS = ("1", "2", "3", "4")
+
+    def __init__(self, transport, max_std_m: float = 0.3, max_jump_m: float = 0.5, listen_s: float = 0.3,
+                 line_timeout_s: float = 2.5, watchdog_s: float = 2.5):
+        if not max_std_m > 0:
+            raise ValueError(f"max_std_m={max_std_m!r}: must be > 0")
+        self.transport, self.max_std_m, self.max_jump_m = transport, max_std_m, max_jump_m
+        self._history: dict[int, deque] = {}
+        self.listen_s, self.line_timeout_s, self.watchdog_s = listen_s, line_timeout_s, watchdog_s
+        self.decoder = TiersTagDecoder()
+        self.latest: LocationReport | None = None
+        self.latest_time: float = -np.inf
+        self.reports = 0
+        self.lines_rejected = 0
+        self.ranges_rejected = 0
+        self.restarts = 0  # start bytes sent by the watchdog (reboots, silence)
+        self._last_attempt = -np.inf
+        self._reconnections = getattr(transport, "reconnections", 0)
+        self._booted = False
+
+    def ensure_streaming(self, attempts: int = 1) -> None:
+        """Listen ``listen_s`` for a line; if none comes, send ``S`` and wait up to
+        ``line_timeout_s`` (a line takes ~0.1 s, 1.7 s more per anchor that does not answer),
+        ``attempts`` times. :class:`DeviceTimeout` when no line arrives."""
+        if self._listen(self.listen_s):
+            return
+        for _ in range(attempts):
+            self.transport.write(START)  # latched: harmless if the tag is already polling
+            if self._listen(self.line_timeout_s):
+                return
+        raise DeviceTimeout(self.transport.url, "TIERS tag lines after the start byte", self.line_timeout_s)
+
+    def _listen(self, seconds: float) -> bool:
+        deadline = time.monotonic() + seconds
+        while True:
+            if self._read():
+                return True
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.01)
+
+    start_lec = ensure_streaming
+
+    def poll(self) -> list[LocationReport]:
+        out = self._read()
+        now = time.monotonic()
+        reconnections = getattr(self.transport, "reconnections", 0)
+        reconnected = reconnections != self._reconnections
+        silent = now - self.latest_time > self.watchdog_s
+        if self._booted or ((reconnected or silent) and now - self._last_attempt > self.watchdog_s):
+            if getattr(self.transport, "connected", None) is None or self.transport.connected.is_set():
+                self._last_attempt, self._reconnections, self._booted = now, reconnections, False
+                try:
+                    self.transport.write(START)  # latched: harmless if the tag is already polling
+                    self.restarts += 1
+                except HardwareError:
+                    pass  # still away: the next watchdog period tries again
+        return out
+
+    def _read(self) -> list[LocationReport]:
+        try:
+            messages = self.decoder.feed(self.transport.read_available())
+        except Exception:  # noqa: BLE001 (decoders never raise; a bug there must not stop the tag)
+            self.decoder, messages = TiersTagDecoder(), []
+        out = []
+        for message in messages:
+            if isinstance(message, TiersTagLine):
+                out.append(self._report(message))
+            elif isinstance(message, RejectedTagLine):
+                self.lines_rejected += 1
+            elif isinstance(message, OtherTagLine) and message.text.startswith(BANNER_INIT):
+                self._booted = True  # rebooted: waits for S
+        if out:
+            self.latest, self.latest_time = out[-1], time.monotonic()
+            self.reports += len(out)
+        return out
+
+    def _report(self, line: TiersTagLine) -> LocationReport:
+        keep = line.plausible(self.max_std_m) & self._continuous(line)
+        self.ranges_rejected += int((line.answered & ~keep).sum())
+        ranges = tuple(AnchorRange(str(a), (0.0, 0.0, 0.0), float(d))
+                       for a, d, k in zip(line.anchor_ids, line.mean_m, keep, strict=True) if k)
+        return LocationReport(ranges, None, None, "tiers")
+
+    def _continuous(self, line: TiersTagLine) -> np.ndarray:
+        """A range within ``max_jump_m`` of the median of the anchor's last three readings
+        (those less than a second old; fewer than two: accepted). A character lost on the wire
+        inside a byte still parses (``150`` -> ``15``: 1.50 m -> 0.15 m); a tag cannot move that
+        far between two lines ~0.1 s apart."""
+        now = time.monotonic()
+        ok = np.ones(len(line.mean_m), dtype=bool)
+        for j, r in enumerate(line.mean_m):
+            if not np.isfinite(r):
+                continue
+            recent = [v for t, v in self._history.get(j, ()) if now - t < 1.0]
+            if len(recent) >= 2 and abs(r - float(np.median(recent))) > self.max_jump_m:
+                ok[j] = False
+            self._history.setdefault(j, deque(maxlen=3)).append((now, float(r)))
+        return ok
 
 
 class PansTlvDriver:

@@ -6,6 +6,8 @@ truth and the fitted range model). Devices are byte-level state machines:
 - :class:`TiersAnchorDevice`: anchor ID 1 of the TIERS firmware (banner; ``S`` starts a round
   that takes as long as the timing model says; any other byte aborts it; the matrix of means
   and population stds of K ranges per ordered pair, in truncated centimetres).
+- :class:`TiersTagDevice`: a tag of the TIERS localization build (banner, latched ``S``, one
+  line per polling cycle, 255 bytes and the leaked partial sum of an anchor that times out).
 - :class:`PansTagDevice`: a PANS tag in generic (TLV) mode after reset; ``\\r\\r`` enters the
   shell (banner, ``dwm> ``, echo, ``lec``/``lep``/``les`` toggles at the update rate, ``aurs``,
   ``quit``, ``reset``, empty line repeats); TLV ``dwm_loc_get``/``pos_get``/``cfg_get``/update
@@ -33,6 +35,7 @@ from uwb_env.config import ConfigBase, SimConfig
 from uwb_env.hardware import tlv
 from uwb_env.hardware.pans_shell import AnchorRange, format_lec
 from uwb_env.hardware.tiers import BANNER_INIT, ROLE_SWAP, encode_matrix
+from uwb_env.hardware.tiers_tag import encode_tag_line
 from uwb_env.sim import World
 
 
@@ -202,6 +205,102 @@ class TiersAnchorDevice:
             lines[row] = lines[row][: len(lines[row]) // 2]  # TX-FIFO overflow drops the tail
             text = b"\r\n".join(lines)
         return text
+
+
+class TiersTagDevice:
+    """A tag running the TIERS localization build (ID 0), ranging to scene anchors 0..3 (IDs 1..4).
+
+    Modelled on ``Localization/Initiator/main.c`` and ``ss_init_main.c``: after power-up the
+    banner, then nothing until ``S``; the flag is latched (one poll per main-loop iteration
+    while the last byte read is ``S``, another byte pauses, ``F`` prints ``END`` and stops the
+    tag until a reboot). Each anchor in turn gets polls until 5 answers (one SS-TWR exchange
+    plus the 1 ms inter-ranging delay each) or 25 failed polls in a row (65 ms RX timeout each:
+    255 bytes). The running sum is reset only after an anchor that answered 5 times, so a
+    timed-out anchor's partial sum leaks into the next anchor's mean (the firmware's quirk).
+    ``silent_after``: anchor ID -> answers it gives per cycle before falling silent
+    (``{3: 0}``: anchor 3 never answers); ranges are the SS-TWR ranges with the fitted bias.
+    """
+
+    RX_TIMEOUT_S = 0.065  # dwt_setrxtimeout(65000) in main.c
+    RNG_DELAY_S = 0.001  # RNG_DELAY_MS
+    MAX_ITER, TIMEOUT_POLLS = 5, 25
+
+    def __init__(self, scene: Scene, tag_index: int, faults: Faults = Faults(), seed: int = 3,
+                 silent_after: dict[int, int] | None = None):
+        if scene.config.n_anchors != 4:
+            raise ValueError(f"n_anchors={scene.config.n_anchors!r}: the TIERS tag build polls exactly 4 anchors")
+        self.scene, self.tag_index, self.faults = scene, tag_index, faults
+        self.rng = np.random.default_rng(seed + tag_index)
+        self.silent_after = dict(silent_after or {})
+        self.exchange_s = scene.world.timing.exchange_s
+        self.lines = 0
+        self.reboot()
+
+    def reboot(self) -> None:
+        self.out = bytearray((BANNER_INIT + "\r\n").encode())
+        self._flag, self._stopped = b"0", False
+        self._resp, self._iter, self._timeouts, self._total = 1, 0, 0, 0.0
+        self._answers = 0
+        self._measurements = np.zeros(self.MAX_ITER)
+        self._row_means: list[float] = []
+        self._row_stds: list[float] = []
+        self._clock: float | None = None
+
+    def receive(self, data: bytes, now: float) -> None:
+        if self.faults.hang or not data or self._stopped:
+            return
+        self._run(now)
+        self._flag = data[-1:]
+        if self._flag == b"F":
+            self.out += b"END\r\n"
+            self._stopped = True
+        elif self._flag == b"S" and self._clock is None:
+            self._clock = now
+
+    def poll(self, now: float) -> bytes:
+        if self.faults.hang:
+            self.out.clear()
+            return b""
+        self._run(now)
+        data, self.out = bytes(self.out), bytearray()
+        return _apply_faults(data, self.faults, self.rng)
+
+    def _run(self, now: float) -> None:
+        if self._stopped or self._flag != b"S" or self._clock is None:
+            self._clock = now if self._flag == b"S" else None
+            return
+        while self._clock < now:
+            self._clock += self._poll_once()
+
+    def _poll_once(self) -> float:
+        """One ss_init_run(): returns the time it took."""
+        limit = self.silent_after.get(self._resp)
+        anchor = self.scene.anchors_true()[self._resp - 1]
+        tag = self.scene.tags_true()[self.tag_index]
+        r = np.nan if limit is not None and self._answers >= limit else self.scene.measure(anchor, tag, 1)[0]
+        if np.isfinite(r):
+            self._measurements[self._iter] = r
+            self._total += r
+            self._iter, self._timeouts, self._answers = self._iter + 1, 0, self._answers + 1
+            took = self.exchange_s + self.RNG_DELAY_S
+        else:
+            self._timeouts += 1
+            took = self.RX_TIMEOUT_S + self.RNG_DELAY_S
+        if self._iter >= self.MAX_ITER or self._timeouts == self.TIMEOUT_POLLS:
+            if self._timeouts == self.TIMEOUT_POLLS:
+                self._row_means.append(np.nan)  # 255 bytes; the running sum is NOT reset (firmware)
+                self._row_stds.append(np.nan)
+            else:
+                mean = self._total / self.MAX_ITER
+                self._total = 0.0
+                self._row_means.append(mean)
+                self._row_stds.append(float(np.sqrt(np.mean((self._measurements - mean) ** 2))))
+            self._resp, self._iter, self._timeouts, self._answers = self._resp + 1, 0, 0, 0
+            if self._resp > 4:
+                self.out += encode_tag_line(self._row_means, self._row_stds)
+                self.lines += 1
+                self._resp, self._row_means, self._row_stds = 1, [], []
+        return took
 
 
 class PansTagDevice:
@@ -543,8 +642,13 @@ class Emulator:
 
 
 def standard_setup(scene: Scene, faults: dict[str, Faults] | None = None, transport: str = "pty",
-                   seed: int = 0) -> tuple[Emulator, dict[str, str]]:
-    """One TIERS anchor (``anchor``) and a PANS tag per scene tag (``tag_0`` ...): name -> URL."""
+                   seed: int = 0, tag_firmware: str = "pans") -> tuple[Emulator, dict[str, str]]:
+    """One TIERS anchor (``anchor``) and a tag per scene tag (``tag_0`` ...): name -> URL.
+
+    ``tag_firmware``: ``"pans"`` (stock PANS tags, ranging to a PANS anchor set) or ``"tiers"``
+    (the TIERS localization build, ranging to the TIERS anchors themselves: all-TIERS)."""
+    if tag_firmware not in ("pans", "tiers"):
+        raise ValueError(f"tag_firmware={tag_firmware!r}: expected 'pans' or 'tiers'")
     faults = faults or {}
     emu = Emulator(scene)
     make = (lambda: SocketPort()) if transport == "socket" else (lambda: PtyPort())
@@ -552,5 +656,6 @@ def standard_setup(scene: Scene, faults: dict[str, Faults] | None = None, transp
                               make())}
     for t in range(scene.config.n_tags):
         name = f"tag_{t}"
-        urls[name] = emu.add(name, PansTagDevice(scene, t, faults.get(name, Faults()), seed=seed + 2), make())
+        kind = TiersTagDevice if tag_firmware == "tiers" else PansTagDevice
+        urls[name] = emu.add(name, kind(scene, t, faults.get(name, Faults()), seed=seed + 2), make())
     return emu, urls

@@ -9,7 +9,8 @@ byte aborts the round). Anchor 1 -> host, per round::
 where ``Rk`` are 16 ``"%d , "`` tokens: for responder j, ``mean_msb, mean_lsb, std_msb,
 std_lsb`` in centimetres (truncated, uint8). Row = initiator ID - 1, column = responder ID - 1.
 A row that is not exactly 16 integers in 0..255 (TX-FIFO overflow drops characters) makes the
-whole matrix rejected, never misread.
+whole matrix rejected, never misread. A negative mean wraps (uint8): :func:`unwrap_negative_means`
+undoes it where the reverse direction of the pair tells.
 """
 
 from __future__ import annotations
@@ -85,6 +86,44 @@ def decode_cells(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     mean = (rows[..., 0] * 256 + rows[..., 1]) / 100.0
     std = (rows[..., 2] * 256 + rows[..., 3]) / 100.0
     return mean, std
+
+
+WRAP_M = 2.56  # a negative mean in (-2.56, 0) m is printed as msb 0, lsb 256 + cm: read as mean + 2.56
+
+
+def unwrap_negative_means(mean_m: np.ndarray, tolerance_m: float = 0.3,
+                          window_m: float = 0.5) -> tuple[np.ndarray, int, int]:
+    """Undo the uint8 wrap of negative means (possible after antenna-delay errors at very short
+    range, down to about ``-window_m``) where the matrix itself tells. A cell read in
+    [2.56 - window_m, 2.56) m may be a negative mean + 2.56. It is unwrapped when its unwrapped
+    value agrees with the reverse direction of the same pair (within ``tolerance_m``) and the
+    read value does not. When both directions read alike, a third anchor decides: two anchors
+    a few centimetres apart are at the same distance from every other anchor, so one anchor
+    whose two distances differ by more than ``window_m`` + ``tolerance_m`` shows the pair is
+    genuine. Returns (means, cells unwrapped, pairs left ambiguous).
+    """
+    mean = np.array(mean_m, dtype=float)
+    n = mean.shape[0]
+    unwrapped = ambiguous = 0
+    candidate = (mean >= WRAP_M - window_m) & (mean < WRAP_M)
+    for i in range(n):
+        for j in range(i + 1, n):
+            ci, cj = candidate[i, j], candidate[j, i]
+            if not (ci or cj):
+                continue
+            if ci and cj and abs(mean[i, j] - mean[j, i]) <= tolerance_m:
+                others = [k for k in range(n) if k not in (i, j)]
+                spread = [abs(np.nanmean([mean[i, k], mean[k, i]]) - np.nanmean([mean[j, k], mean[k, j]]))
+                          for k in others]
+                if not any(d > window_m + tolerance_m for d in spread):
+                    ambiguous += 1  # co-located or on the perpendicular bisector: not guessed
+                continue
+            for a, b in ((i, j), (j, i)):
+                if candidate[a, b] and abs(mean[a, b] - WRAP_M - mean[b, a]) <= tolerance_m < abs(
+                        mean[a, b] - mean[b, a]):
+                    mean[a, b] -= WRAP_M
+                    unwrapped += 1
+    return mean, unwrapped, ambiguous
 
 
 def encode_matrix(mean_m: np.ndarray, std_m: np.ndarray) -> bytes:
