@@ -19,15 +19,16 @@ from __future__ import annotations
 import numpy as np
 
 from uwb_env.config import EnvConfig
-from uwb_env.localization import calibrate_anchors, locate_tags, rigid_align
-from uwb_env.localization.batched_calibration import calibrate_with_priors
+from uwb_env.localization import calibrate_anchors
+from uwb_env.localization.alignment import rigid_align_batch
+from uwb_env.localization.batched_calibration import _solve_teams, first_calibrations, symmetric_arrays
 from uwb_env.localization.errors import LocalizationError
 from uwb_env.localization.multilateration import check_mirror_2d, refit_stuck_tags_2d, track_tags_2d
-from uwb_env.sim import World
-from uwb_env.sim.calibration_round import CalibrationRound
+from uwb_env.measurements import RangeMatrix
 from uwb_env.sim.motion import MotionModel
 from uwb_env.sim.odometry import OdometryModel
-from uwb_env.system import OBS_FIELDS, LocalizationSystem, carry_to_round_midpoint
+from uwb_env.sim.round_cohort import RoundCohort
+from uwb_env.system import OBS_FIELDS, LocalizationSystem
 
 
 class BatchedSystem:
@@ -45,7 +46,7 @@ class BatchedSystem:
         self.timing = self._template.world.timing
         self.dt_s = sim.dt_s
         self.motion = MotionModel([(sim.anchor_motion, self.B * self.N), (sim.tag_motion, self.B * self.M)],
-                                  sim.area_size_m)
+                                  sim.area_size_m, copies=self.B)
         self.odometry = OdometryModel(sim.odometry)
         self.obs_low, self.obs_high = self._template.feature_bounds()
         self.obs_size = 2 + len(OBS_FIELDS)
@@ -63,19 +64,16 @@ class BatchedSystem:
     def reset(self, rng: np.random.Generator) -> None:
         cfg, B, N, M = self.config, self.B, self.N, self.M
         self.rng = rng
-        placer = World(cfg.sim, self.range_model)
-        anchors, tags = [], []
-        for _ in range(B):
-            a = placer.initial_anchors(rng)
-            anchors.append(a)
-            tags.append(placer.initial_tags(a, rng))
-        self.motion.reset(np.vstack(anchors + tags), rng)
+        anchors, tags = self._initial_positions(rng)
+        self.motion.reset(np.vstack([anchors.reshape(B * N, 2), tags.reshape(B * M, 2)]), rng)
         self.odometry.reset(B * N, rng)
         self.time_s, self.step_count = 0.0, 0
         self.anchors_est = self.anchors_true.copy()
         self.frame_rot = np.tile(np.eye(2), (B, 1, 1))
         self.frame_origin = np.zeros((B, 2))
-        self.rounds: list[CalibrationRound | None] = [None] * B
+        self._cohorts: dict[int, RoundCohort] = {}
+        self._cohort_of = np.full(B, -1)
+        self._next_cohort = 0
         self.est_at_round_start = np.zeros((B, N, 2))
         self.calibration_count = np.zeros(B, dtype=int)
         self.time_calibrating_s = np.zeros(B)
@@ -91,33 +89,53 @@ class BatchedSystem:
         self._tag_res = np.zeros((B, w))
         self._anchor_res = np.zeros((B, w, N))
         self._hist = np.zeros(B, dtype=int)
-        # First calibration of every copy (paper rules), robots moving meanwhile.
-        true_start, est_start = self.anchors_true.copy(), self.anchors_est.copy()
-        for k in range(B):
-            self._start_round(k)
-        while any(r is not None and not r.done for r in self.rounds):
+        # First calibration of every copy (paper rules), robots moving meanwhile: one cohort.
+        true_start = self.anchors_true.copy()
+        self._start_rounds(np.arange(B))
+        (cohort,) = self._cohorts.values()
+        while not cohort.done:
             self._advance_world()
         true_mid = 0.5 * (true_start + self.anchors_true)
+        mean, std, count = self._round_statistics(cohort)
+        est_start, est_now = self.est_at_round_start, self.anchors_est
+        complete, pairs, dist, var = symmetric_arrays(mean, count, self.range_std_m)
+        results: list = [None] * B
+        rows = np.flatnonzero(complete)
+        solver = cfg.solver
+        for r, res in zip(rows, first_calibrations(pairs, dist[rows], var[rows], solver.loss, solver.f_scale_sigmas),
+                          strict=True):
+            results[r] = res
         for k in range(B):
-            matrix = carry_to_round_midpoint(self.range_model.correct_matrix(self.rounds[k].result()), self.rounds[k],
-                                             est_start[k], self.anchors_est[k], self.time_s)
-            result = calibrate_anchors(matrix, dim=2, loss=cfg.solver.loss, f_scale=cfg.solver.f_scale_sigmas,
-                                       range_std_m=self.range_std_m)
-            rot, trans = rigid_align(true_mid[k], result.positions)
-            self.frame_rot[k], self.frame_origin[k] = rot, -rot.T @ trans
-            since_mid = (self.anchors_est[k] - 0.5 * (est_start[k] + self.anchors_est[k])) @ rot.T
-            self._apply(k, result, since_mid)
-            self.rounds[k] = None
+            if results[k] is None:  # thin layouts, missing pairs, poor fits: the full solver's starts
+                results[k] = calibrate_anchors(RangeMatrix(mean[k], std[k], count[k]), dim=2, loss=solver.loss,
+                                               f_scale=solver.f_scale_sigmas, range_std_m=self.range_std_m)
+        positions = np.stack([r.positions for r in results])
+        rot, origin = rigid_align_batch(true_mid, positions)  # estimate = truth @ R.T + t, per copy
+        self.frame_rot, self.frame_origin = rot, -np.einsum("bji,bj->bi", rot, origin)
+        since_mid = np.einsum("bnj,bij->bni", est_now - 0.5 * (est_start + est_now), rot)
+        for k in range(B):
+            self._apply(k, results[k], since_mid[k])
+        self._end_cohort(cohort)
         self._fix_tags(np.ones(B, dtype=bool), cold=True)
+
+    def _initial_positions(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """World.initial_anchors / initial_tags for every copy in a few array calls (2D)."""
+        sim, B, N, M = self.config.sim, self.B, self.N, self.M
+        size = sim.area_size_m
+        angles = 2 * np.pi * np.arange(N) / N + np.pi / 4 + np.pi
+        radius = 0.5 * size * np.sqrt(2) * 0.8
+        xy = size / 2 + radius * np.column_stack([np.cos(angles), np.sin(angles)])
+        anchors = np.clip(xy + sim.anchor_jitter_fraction * size * rng.uniform(-1, 1, (B, N, 2)), 0.0, size)
+        weights = rng.dirichlet(np.ones(N), (B, M))  # convex combinations: inside the anchors' polygon
+        return anchors, weights @ anchors
 
     def step(self, requests: np.ndarray) -> dict[str, np.ndarray]:
         """Advance every copy by ``dt_s``; ``requests`` (B,) bool start rounds where none runs."""
         B = self.B
         requests = np.asarray(requests, dtype=bool).reshape(B)
-        running = np.array([r is not None for r in self.rounds])
-        started = requests & ~running
-        for k in np.flatnonzero(started):
-            self._start_round(k)
+        started = requests & (self._cohort_of < 0)
+        if started.any():
+            self._start_rounds(np.flatnonzero(started))
         t0 = self.time_s
         before = self.anchors_est.copy()
         self._advance_world()
@@ -128,15 +146,13 @@ class BatchedSystem:
         busy = np.zeros(B)
         finished = np.zeros(B, dtype=bool)
         failed = np.zeros(B, dtype=bool)
-        for k, rnd in enumerate(self.rounds):
-            if rnd is None:
-                continue
-            busy[k] = (min(rnd.end_time_s, self.time_s) - max(rnd.start_time_s, t0)) / self.dt_s
-            finished[k] = rnd.done
-        if finished.any():
-            failed[finished] = ~self._finish_rounds(np.flatnonzero(finished))
+        in_round = self._cohort_of >= 0
+        for cohort in list(self._cohorts.values()):
+            busy[cohort.copies] = (min(cohort.end_time_s, self.time_s) - max(cohort.start_time_s, t0)) / self.dt_s
+            if cohort.done:
+                finished[cohort.copies] = True
+                failed[cohort.copies] = ~self._finish_cohort(cohort)
         self.time_calibrating_s += busy * self.dt_s
-        in_round = np.array([r is not None for r in self.rounds]) | finished
         # tags hold during rounds (and on the step a round ends, like the single env)
         hold = in_round
         if self.config.tag_fallback == "predict":
@@ -148,7 +164,7 @@ class BatchedSystem:
     # -- world ---------------------------------------------------------------------------------------
     def _advance_world(self) -> None:
         B, N = self.B, self.N
-        running = [k for k, r in enumerate(self.rounds) if r is not None and not r.done]
+        running = [c for c in self._cohorts.values() if not c.done]
         before = self.anchors_true.copy() if running else None
         delta, turn = self.motion.step(self.dt_s, self.rng)
         odo = self.odometry.estimated_displacement(delta[: B * N], turn[: B * N], self.dt_s, self.rng)
@@ -157,44 +173,61 @@ class BatchedSystem:
         self.step_count += 1
         self.time_s = self.step_count * self.dt_s
         after = self.anchors_true
-        for k in running:
-            self.rounds[k].advance(t0, self.time_s, before[k], after[k], self.range_model, self.rng)
+        for cohort in running:
+            cohort.advance(t0, self.time_s, before[cohort.copies], after[cohort.copies], self.range_model, self.rng)
 
-    def _start_round(self, k: int) -> None:
+    # -- calibration rounds: copies that start on the same step share a schedule (a cohort) --------
+    def _start_rounds(self, copies: np.ndarray) -> None:
         k_pairs = self.config.sim.calibration.measurements_per_pair
-        self.rounds[k] = CalibrationRound(self.N, self.timing, k_pairs, self.time_s)
-        self.est_at_round_start[k] = self.anchors_est[k]
+        cohort = RoundCohort(copies, self.N, self.timing, k_pairs, self.time_s)
+        self._cohorts[self._next_cohort] = cohort
+        self._cohort_of[copies] = self._next_cohort
+        self._next_cohort += 1
+        self.est_at_round_start[copies] = self.anchors_est[copies]
 
-    def _finish_rounds(self, copies: np.ndarray) -> np.ndarray:
-        """Solve the rounds that finished this step: the usual case (every pair, a fit the
-        verdict accepts) in one batched Gauss-Newton, the rest with the full solver per copy
-        (the same answers: ``calibrate_with_priors`` hands back whatever needs more)."""
+    def _end_cohort(self, cohort: RoundCohort) -> None:
+        del self._cohorts[int(self._cohort_of[cohort.copies[0]])]
+        self._cohort_of[cohort.copies] = -1
+
+    def _round_statistics(self, cohort: RoundCohort) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Bias-corrected per-pair mean (carried to the round's midpoint), std and count of a
+        finished cohort, (C, N, N) each: the single env's round result, for all copies at once."""
+        mean, std, count = cohort.pair_statistics()
+        mean, std = self.range_model.correct(mean), self.range_model.correct_std(std)
+        mean = cohort.carry_to_midpoint(mean, self.est_at_round_start[cohort.copies], self.anchors_est[cohort.copies],
+                                        self.time_s)
+        return mean, std, count
+
+    def _finish_cohort(self, cohort: RoundCohort) -> np.ndarray:
+        """Solve the rounds of a finished cohort: the usual case (every pair, a fit the verdict
+        accepts) in one batched Gauss-Newton, the rest with the full solver per copy (the same
+        answers: the batched solve hands back whatever needs more). Returns ok per copy."""
+        copies = cohort.copies
+        mean, std, count = self._round_statistics(cohort)
+        self._end_cohort(cohort)
         est_mid = 0.5 * (self.est_at_round_start[copies] + self.anchors_est[copies])
+        complete, pairs, dist, var = symmetric_arrays(mean, count, self.range_std_m)
+        results: list = [None] * len(copies)
+        rows = np.flatnonzero(complete)
+        if len(rows):
+            solver = self.config.solver
+            for r, res in zip(rows, _solve_teams(pairs, dist[rows], var[rows], est_mid[rows], solver.loss,
+                                                 solver.f_scale_sigmas, solver.gauge, 50, 1e-3, 8.0), strict=True):
+                results[r] = res
         ok = np.zeros(len(copies), dtype=bool)
-        matrices, rows = [], []
         for row, k in enumerate(copies):
-            rnd = self.rounds[k]
-            try:
-                matrices.append(carry_to_round_midpoint(self.range_model.correct_matrix(rnd.result()), rnd,
-                                                        self.est_at_round_start[k], self.anchors_est[k], self.time_s))
-                rows.append(row)
-            except LocalizationError:  # as the single env: keep odometry, report the failure
-                self.rounds[k] = None
-        solver = self.config.solver
-        batched = calibrate_with_priors(matrices, est_mid[rows], self.range_std_m, solver.loss,
-                                        solver.f_scale_sigmas, solver.gauge)
-        for row, result, matrix in zip(rows, batched, matrices, strict=True):
-            k = copies[row]
-            if result is not None:
-                self.rounds[k] = None
-                self._apply(k, result, self.anchors_est[k] - est_mid[row])
+            if results[row] is not None:
+                self._apply(k, results[row], self.anchors_est[k] - est_mid[row])
                 ok[row] = True
-            else:
-                ok[row] = self._finish_round(k, matrix)
+                continue
+            try:
+                matrix = RangeMatrix(mean[row], std[row], count[row])
+            except LocalizationError:  # as the single env: keep odometry, report the failure
+                continue
+            ok[row] = self._finish_round(k, matrix)
         return ok
 
     def _finish_round(self, k: int, matrix) -> bool:
-        self.rounds[k] = None
         solver = self.config.solver
         est_mid = 0.5 * (self.est_at_round_start[k] + self.anchors_est[k])
         try:
@@ -247,11 +280,12 @@ class BatchedSystem:
         if solver.use_anchor_covariance:
             drift = (pred_var - self.calibration_var_m2) / 2
             cov = self.anchor_cov + drift[..., None, None] * np.eye(2)
-        if cold:
-            fixes = [locate_tags(self.anchors_est[k], ranges[k], self.range_std_m, with_covariance=False,
-                                 anchor_covariance=None if cov is None else cov[k]) for k in sel]
-            pos = np.stack([f.positions for f in fixes])
-            rms = np.stack([f.residual_rms_m for f in fixes])
+        if cold:  # every tag of every copy from the closed form, refined by the tracking kernel, at once
+            pos = np.full((len(sel), self.M, 2), np.nan)
+            rms = np.full((len(sel), self.M), np.inf)
+            refit_stuck_tags_2d(self.anchors_est[sel], ranges[sel], pos, rms, np.zeros(len(sel)),
+                                self.range_std_m**2, None if cov is None else cov[sel], solver.loss,
+                                solver.f_scale_sigmas, iterations=20)
         else:
             pos, rms, _ = self._gauss_newton(sel, ranges[sel], None if cov is None else cov[sel])
             restart = solver.tag_restart_residual_m + 2.0 * np.sqrt(pred_var[sel].max(axis=1))
@@ -305,8 +339,11 @@ class BatchedSystem:
         f[..., 5] = self.last_calibration_rms_m[:, None]
         f[..., 6] = tag_res[:, None]
         f[..., 7] = own
-        f[..., 8] = np.array([r is not None for r in self.rounds], dtype=np.float32)[:, None]
-        f[..., 9] = np.array([r.progress if r is not None else 0.0 for r in self.rounds], dtype=np.float32)[:, None]
+        progress = np.zeros(B)
+        for cohort in self._cohorts.values():
+            progress[cohort.copies] = cohort.progress
+        f[..., 8] = (self._cohort_of >= 0)[:, None]
+        f[..., 9] = progress[:, None]
         return np.clip(f, self.obs_low, self.obs_high)
 
     def errors_m(self) -> tuple[np.ndarray, np.ndarray]:
@@ -340,3 +377,4 @@ class BatchedSystem:
                    + cfg.calibration_time_weight * report["calibrating_fraction"]
                    + cfg.calibration_start_cost * report["round_started"])
         return reward, tag, anchor
+

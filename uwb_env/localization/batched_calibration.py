@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import chdtrc
 
-from uwb_env.localization.alignment import paper_frame, rigid_align
+from uwb_env.localization.alignment import paper_frame_2d_batch, rigid_align, rigid_align_batch
 from uwb_env.localization.robust import irls_weights
 from uwb_env.measurements import RangeMatrix
 
@@ -34,6 +34,7 @@ class BatchedCalibration:
     dof: int
     status: str = "ok"
     ambiguous: bool = False
+    cost: float = float("nan")  # the (robust) least-squares cost at the solution
 
     def anchor_covariance(self) -> np.ndarray:
         n, dim = self.positions.shape
@@ -61,7 +62,105 @@ def calibrate_with_priors(matrices: list[RangeMatrix], priors: np.ndarray, range
     pairs = data[full[0]][0]
     dist = np.stack([data[i][1] for i in full])
     var = np.stack([data[i][2] for i in full])
-    prior = priors[full]
+    for r, res in zip(full, _solve_teams(pairs, dist, var, priors[full], loss, f_scale, gauge, max_iterations,
+                                         fit_alpha, restart_sigmas), strict=True):
+        out[r] = res
+    return out
+
+
+def symmetric_arrays(mean_m: np.ndarray, count: np.ndarray, range_std_m: float):
+    """``RangeMatrix.complete_symmetric(std_m=range_std_m)`` for (K, N, N) means and counts at
+    once: (complete (K,) bool, pairs (P, 2), dist (K, P), var (K, P)); a team is complete when
+    every ordered pair was measured with a finite mean >= the solver's negative tolerance."""
+    from uwb_env.measurements import NEGATIVE_RANGE_TOLERANCE_M
+
+    n = mean_m.shape[1]
+    iu, ju = np.triu_indices(n, 1)
+    ma, mb = mean_m[:, iu, ju], mean_m[:, ju, iu]
+    ca, cb = count[:, iu, ju].astype(float), count[:, ju, iu].astype(float)
+    with np.errstate(invalid="ignore"):
+        complete = ((np.minimum(ca, cb) > 0).all(1) & (np.minimum(ma, mb) >= -NEGATIVE_RANGE_TOLERANCE_M).all(1)
+                    & (np.maximum(ma, mb) < np.inf).all(1))
+    total = (ca + cb) / range_std_m**2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        dist = (ca * ma + cb * mb) / (ca + cb)
+    return complete, np.column_stack([iu, ju]), dist, 1.0 / np.maximum(total, 1e-300)
+
+
+def first_calibrations(pairs: np.ndarray, dist: np.ndarray, var: np.ndarray, loss: str = "huber",
+                       f_scale: float = 3.0, max_iterations: int = 50, fit_alpha: float = 1e-3,
+                       restart_sigmas: float = 8.0, min_aspect: float = 0.1) -> list[BatchedCalibration | None]:
+    """First calibrations (no prior) of K complete 2D teams: classical MDS of each team's
+    matrix as the start, then :func:`calibrate_with_priors`' solve and verdict. Positions and
+    covariance come back as the full solver's first calibration gives them: in the paper's
+    frame (anchor 0 at the origin, anchor 1 on +x, the y axis to the side where the other
+    anchors' y sum positive), with that gauge's covariance. A poor fit is returned as such
+    (``status`` "poor_fit") where the full solver would end with it too: too few degrees of
+    freedom to reject a pair and no single-anchor reflection with a lower cost. A team is handed
+    back (``None``) where the full solver's several starts could matter: a thin or degenerate
+    layout (second MDS eigenvalue below ``min_aspect`` of the first), a poor fit it would work
+    on further, or anything :func:`calibrate_with_priors` hands back."""
+    k_teams = dist.shape[0]
+    n = int(pairs.max()) + 1
+    d2 = np.zeros((k_teams, n, n))
+    d2[:, pairs[:, 0], pairs[:, 1]] = dist**2
+    d2[:, pairs[:, 1], pairs[:, 0]] = dist**2
+    centre = np.eye(n) - 1.0 / n
+    gram = -0.5 * centre @ d2 @ centre
+    values, vectors = np.linalg.eigh(gram)  # ascending
+    top = values[:, -2:][:, ::-1]
+    ok = (top[:, 1] > 0) & (top[:, 1] >= min_aspect * top[:, 0])
+    start = vectors[:, :, -2:][:, :, ::-1] * np.sqrt(np.maximum(top, 0.0))[:, None, :]
+    out: list[BatchedCalibration | None] = [None] * k_teams
+    rows = np.flatnonzero(ok)
+    if not len(rows):
+        return out
+    # the full solver's first-calibration gauge: anchor 0 at the origin, anchor 1 on +x
+    args = (loss, f_scale, "paper", max_iterations, fit_alpha, restart_sigmas)
+    results = _solve_group(pairs, dist[rows], var[rows], start[rows], 1, *args, accept_poor=True)
+    dof = len(pairs) - (2 * n - 3)
+    poor = [r for r, res in enumerate(results) if res is not None and res.status == "poor_fit"]
+    if poor and dof < 3:
+        # What the full solver does with a poor fit it cannot reject a pair from (fewer than two
+        # dof would be left): it reflects each anchor across the line through its two nearest
+        # others and keeps a lower cost. Where no reflection lowers the cost its answer is this
+        # one; where one does, hand the team back.
+        best = np.array([results[r].cost for r in poor])
+        base = np.stack([results[r].positions for r in poor])
+        lower = np.zeros(len(poor), dtype=bool)
+        for k in range(n):
+            starts = _reflect_anchors(base, k)
+            cand = _solve_group(pairs, dist[rows[poor]], var[rows[poor]], starts, 1, *args, accept_poor=True)
+            lower |= np.array([c is not None and c.cost < b - 1e-9 for c, b in zip(cand, best, strict=True)])
+        for r, bad in zip(poor, lower, strict=True):
+            if bad:
+                results[r] = None
+    elif poor:  # the full solver would try outlier rejection: hand back
+        for r in poor:
+            results[r] = None
+    for r, res in zip(rows, results, strict=True):
+        out[r] = res
+    return out
+
+
+def _reflect_anchors(x: np.ndarray, k: int) -> np.ndarray:
+    """(T, N, 2) with anchor k of every team mirrored across the line through its two nearest
+    others (``calibration._reflect_anchor`` for many teams)."""
+    d = np.linalg.norm(x - x[:, k:k + 1], axis=2)
+    d[:, k] = np.inf
+    near = np.argsort(d, axis=1)[:, :2]
+    t = np.arange(len(x))
+    base, other = x[t, near[:, 0]], x[t, near[:, 1]]
+    tangent = other - base
+    normal = np.stack([-tangent[:, 1], tangent[:, 0]], 1) / np.maximum(np.linalg.norm(tangent, axis=1), 1e-12)[:, None]
+    out = x.copy()
+    out[:, k] = x[:, k] - 2.0 * ((x[:, k] - base) * normal).sum(1)[:, None] * normal
+    return out
+
+
+def _solve_teams(pairs, dist, var, prior, loss, f_scale, gauge, max_iterations, fit_alpha, restart_sigmas):
+    """The solve of :func:`calibrate_with_priors` on arrays, grouped by gauge reference."""
+    out: list[BatchedCalibration | None] = [None] * len(prior)
     # the gauge of the full solver: anchor 0 at the origin, the anchor farthest from it on +x
     far = np.argmax(np.linalg.norm(prior - prior[:, :1], axis=2), axis=1)
     for b in np.unique(far):
@@ -69,21 +168,22 @@ def calibrate_with_priors(matrices: list[RangeMatrix], priors: np.ndarray, range
         results = _solve_group(pairs, dist[rows], var[rows], prior[rows], int(b), loss, f_scale, gauge,
                                max_iterations, fit_alpha, restart_sigmas)
         for r, res in zip(rows, results, strict=True):
-            out[full[r]] = res
+            out[r] = res
     return out
 
 
-def _solve_group(pairs, dist, var, prior, b, loss, f_scale, gauge, max_iterations, fit_alpha, restart_sigmas):
+def _solve_group(pairs, dist, var, prior, b, loss, f_scale, gauge, max_iterations, fit_alpha, restart_sigmas,
+                 accept_poor=False):
+    """One batched solve from ``prior`` in the gauge (anchor 0, anchor b); ``accept_poor``:
+    converged fits the verdict rejects come back with status ``poor_fit`` instead of None."""
     k_teams, n, dim = prior.shape
     free = np.ones((n, dim), dtype=bool)
     free[0] = False
     free[b, 1] = False
     free = free.ravel()
-    x = np.stack([p @ rot.T + t for p, (rot, t) in zip(prior, (paper_frame(p, (0, b)) for p in prior),
-                                                        strict=True)])
+    x, ok = paper_frame_2d_batch(prior, b)
     i, j = pairs[:, 0], pairs[:, 1]
     sqrt_iv = 1.0 / np.sqrt(var)
-    ok = np.ones(k_teams, dtype=bool)
     x, ok, _ = _gauss_newton(x, i, j, dist, sqrt_iv, free, "linear", 1.0, max_iterations, 1e-3, ok)
     if loss != "linear":  # the robust stage from the plain solution, 4x the budget (linear convergence)
         x, ok, _ = _gauss_newton(x, i, j, dist, sqrt_iv, free, loss, f_scale, 4 * max_iterations, 1e-4, ok)
@@ -93,25 +193,60 @@ def _solve_group(pairs, dist, var, prior, b, loss, f_scale, gauge, max_iteration
     chi2 = (z * z).sum(1)
     dof = len(pairs) - int(free.sum())
     p_value = chdtrc(dof, chi2) if dof > 0 else np.ones(k_teams)
-    ok &= (p_value >= fit_alpha) & (np.abs(z).max(1) <= restart_sigmas)
-    info = _information(u, i, j, (sqrt_iv * np.sqrt(rw)) ** 2, n, dim)[:, free][:, :, free]
-    results: list[BatchedCalibration | None] = []
-    for k in range(k_teams):
-        if not ok[k]:
-            results.append(None)
-            continue
-        try:
-            cov_free = np.linalg.inv(info[k])
-        except np.linalg.LinAlgError:
-            results.append(None)
-            continue
-        cov = np.zeros((n * dim, n * dim))
-        cov[np.ix_(free, free)] = cov_free
-        rot, trans = rigid_align(x[k], prior[k], allow_reflection=True, pivot=0 if gauge == "anchor0" else None)
-        left = np.matmul(rot, cov.reshape(n, dim, n * dim)).reshape(n * dim, n, dim)
-        cov = np.matmul(left, rot.T).reshape(n * dim, n * dim)
-        results.append(BatchedCalibration(x[k] @ rot.T + trans, cov, res[k], float(chi2[k]), dof))
+    fit = (p_value >= fit_alpha) & (np.abs(z).max(1) <= restart_sigmas)
+    cost = _cost(z, loss, f_scale)
+    if not accept_poor:
+        ok &= fit
+    results: list[BatchedCalibration | None] = [None] * k_teams
+    rows = np.flatnonzero(ok)
+    if not len(rows):
+        return results
+    info = _information(u[rows], i, j, ((sqrt_iv * np.sqrt(rw)) ** 2)[rows], n, dim)[:, free][:, :, free]
+    cov_free, good = _inverse(info)
+    fidx = np.flatnonzero(free)
+    cov = np.zeros((len(rows), n * dim, n * dim))
+    cov[:, fidx[:, None], fidx[None, :]] = cov_free
+    xs = x[rows]
+    if gauge == "paper":  # the first calibration's sign rule on the gauge solution (an axis flip)
+        flip = np.where(xs[:, :, 1].sum(1) < 0, -1.0, 1.0)
+        positions = xs * np.stack([np.ones_like(flip), flip], 1)[:, None, :]
+        signs = np.tile(np.stack([np.ones_like(flip), flip], 1), (1, n))
+        cov = cov * signs[:, :, None] * signs[:, None, :]
+    elif gauge == "anchor0":  # rotation about anchor 0: one alignment per team
+        positions = np.empty_like(xs)
+        for r in range(len(rows)):
+            rot, trans = rigid_align(xs[r], prior[rows[r]], allow_reflection=True, pivot=0)
+            positions[r] = xs[r] @ rot.T + trans
+            cov[r] = _rotate(cov[r][None], rot[None], n, dim)[0]
+    else:
+        rot, trans = rigid_align_batch(xs, prior[rows])
+        positions = np.einsum("knj,kij->kni", xs, rot) + trans[:, None]
+        cov = _rotate(cov, rot, n, dim)
+    for r, k in enumerate(rows):
+        if good[r]:
+            results[k] = BatchedCalibration(positions[r], cov[r], res[k], float(chi2[k]), dof,
+                                            "ok" if fit[k] else "poor_fit", cost=float(cost[k]))
     return results
+
+
+def _inverse(info: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Batched inverse; (inverses, invertible) with NaN where a matrix is singular."""
+    try:
+        return np.linalg.inv(info), np.ones(len(info), dtype=bool)
+    except np.linalg.LinAlgError:
+        out, good = np.full_like(info, np.nan), np.ones(len(info), dtype=bool)
+        for r in range(len(info)):
+            try:
+                out[r] = np.linalg.inv(info[r])
+            except np.linalg.LinAlgError:
+                good[r] = False
+        return out, good
+
+
+def _rotate(cov: np.ndarray, rot: np.ndarray, n: int, dim: int) -> np.ndarray:
+    """(K, n*dim, n*dim) covariances of points rotated by (K, dim, dim): blockwise R C R^T."""
+    c5 = cov.reshape(len(cov), n, dim, n, dim)
+    return np.einsum("kai,kmiqj,kbj->kmaqb", rot, c5, rot).reshape(len(cov), n * dim, n * dim)
 
 
 def _residuals(x, i, j, dist):
@@ -128,12 +263,29 @@ def _incidence(i, j, n):
 
 
 def _information(u, i, j, w, n, dim):
-    """J^T W J over all coordinates, (K, n*dim, n*dim): pair p adds w u u^T with the signs of
-    its incidence row (+ on i, - on j)."""
-    e = _incidence(i, j, n)
-    outer = w[..., None, None] * u[..., :, None] * u[..., None, :]  # (K, P, dim, dim)
-    info = np.einsum("pa,pb,kpcd->kacbd", e, e, outer)
-    return info.reshape(u.shape[0], n * dim, n * dim)
+    """J^T W J over all coordinates, (K, n*dim, n*dim): pair p adds w u u^T to the blocks
+    (i, i) and (j, j) and subtracts it from (i, j) and (j, i); one matmul with a (n*n, P) sign
+    matrix does every pair of every team."""
+    outer = (w[..., None, None] * u[..., :, None] * u[..., None, :]).reshape(u.shape[0], len(i), dim * dim)
+    blocks = _block_signs(i, j, n) @ outer  # (K, n*n, dim*dim)
+    return blocks.reshape(-1, n, n, dim, dim).transpose(0, 1, 3, 2, 4).reshape(-1, n * dim, n * dim)
+
+
+def _block_signs(i, j, n) -> np.ndarray:
+    key = (n, i.tobytes(), j.tobytes())
+    signs = _SIGNS.get(key)
+    if signs is None:
+        p = np.arange(len(i))
+        signs = np.zeros((n * n, len(i)))
+        np.add.at(signs, (i * n + i, p), 1.0)
+        np.add.at(signs, (j * n + j, p), 1.0)
+        np.add.at(signs, (i * n + j, p), -1.0)
+        np.add.at(signs, (j * n + i, p), -1.0)
+        _SIGNS[key] = signs
+    return signs
+
+
+_SIGNS: dict = {}
 
 
 def _gauss_newton(x, i, j, dist, sqrt_iv, free, loss, f_scale, max_iterations, xtol_sigma, ok):
@@ -145,6 +297,7 @@ def _gauss_newton(x, i, j, dist, sqrt_iv, free, loss, f_scale, max_iterations, x
     done = ~ok
     incidence = _incidence(i, j, n)
     res, u = _residuals(x, i, j, dist)
+    rw = None
     for _ in range(max_iterations):
         active = ~done
         if not active.any():

@@ -32,11 +32,17 @@ class MotionModel:
     Args:
         groups: ``(config, count)`` per group, in the order of the position rows.
         area_size_m: side of the square area.
+        copies: independent copies of the scene stacked in every group (the batched env: the
+            first ``count / copies`` rows of a group belong to copy 0, and so on). Formation
+            models keep to their own copy's anchors (the first group).
     """
 
-    def __init__(self, groups: Sequence[tuple[MotionConfig, int]], area_size_m: float):
+    def __init__(self, groups: Sequence[tuple[MotionConfig, int]], area_size_m: float, copies: int = 1):
         self.groups = [(cfg, int(count)) for cfg, count in groups]
         self.area_size_m = float(area_size_m)
+        self.copies = int(copies)
+        if self.copies < 1 or any(count % self.copies for _, count in self.groups):
+            raise ValueError(f"copies={copies!r}: must be >= 1 and divide every group's count")
         self.positions = np.zeros((0, 2))
 
     def reset(self, positions: np.ndarray, rng: np.random.Generator) -> None:
@@ -67,6 +73,10 @@ class MotionModel:
         self._home = self.positions[:, :2].copy().view(np.complex128)[:, 0]
         self._radius = column("patrol_radius_m")
         self._hull_points = self._home[: self.groups[0][1]] if self.groups else self._home[:0]
+        # copy of every row (formation models draw from their own copy's anchors)
+        self._copy_of = np.concatenate([np.repeat(np.arange(self.copies), count // self.copies)
+                                        for _, count in self.groups]) if self.groups else np.zeros(0, dtype=int)
+        self._hull_by_copy = self._hull_points.reshape(self.copies, -1)
         if self._patrol.any() or self._hull.any():
             rows = self._patrol | self._hull
             self.waypoints[rows] = self._draw_waypoints(rows, rng)
@@ -157,9 +167,13 @@ class MotionModel:
             m = int(patrol.sum())
             r = self._radius[rows][patrol] * np.sqrt(rng.random(m))
             out[patrol] = self._home[rows][patrol] + r * np.exp(2j * np.pi * rng.random(m))
-        if hull.any() and len(self._hull_points) >= 3:  # convex combinations of the slots
-            w = rng.dirichlet(np.ones(len(self._hull_points)), int(hull.sum()))
-            out[hull] = w @ self._hull_points
+        per_copy = self._hull_by_copy.shape[1]
+        if hull.any() and per_copy >= 3:  # convex combinations of the slots (of the robot's own copy)
+            w = rng.dirichlet(np.ones(per_copy), int(hull.sum()))
+            if self.copies == 1:
+                out[hull] = w @ self._hull_points
+            else:
+                out[hull] = np.einsum("kn,kn->k", w, self._hull_by_copy[self._copy_of[rows][hull]])
         flat = np.clip(out.view(np.float64), 0.0, self.area_size_m)
         return flat.view(np.complex128)
 

@@ -1,0 +1,124 @@
+"""The batched env's vectorized pieces against the single env's per-copy ones.
+
+Rounds that start on the same step are simulated as one cohort; their per-pair statistics and
+motion compensation must equal ``CalibrationRound`` + ``RangeMatrix.from_samples`` +
+``carry_to_round_midpoint``; the batched first calibration must find the shape the full solver
+finds; the batched alignment must equal ``rigid_align``.
+"""
+
+import numpy as np
+import pytest
+
+from uwb_env.config import CalibrationConfig, RangingConfig
+from uwb_env.localization import calibrate_anchors, rigid_align
+from uwb_env.localization.alignment import rigid_align_batch
+from uwb_env.localization.batched_calibration import first_calibrations, symmetric_arrays
+from uwb_env.measurements import RangeMatrix
+from uwb_env.sim.calibration_round import CalibrationRound, RoundTiming
+from uwb_env.sim.ranging import RangeModel
+from uwb_env.sim.round_cohort import RoundCohort
+from uwb_env.system import carry_to_round_midpoint
+
+
+def _moving_teams(rng, c, n, steps):
+    start = rng.uniform(0, 20, (c, n, 2))
+    velocity = rng.normal(0, 0.5, (c, n, 2))
+    return [start + velocity * 0.2 * s for s in range(steps + 1)]
+
+
+@pytest.mark.parametrize("n", [4, 6])
+def test_cohort_statistics_and_motion_compensation_equal_the_per_copy_round(n):
+    rng = np.random.default_rng(0)
+    timing = RoundTiming.fit(CalibrationConfig())
+    model = RangeModel(RangingConfig())
+    c, k = 7, 5
+    cohort = RoundCohort(np.arange(c), n, timing, k, 1.0)
+    track = _moving_teams(rng, c, n, 40)
+    t, step = 1.0, 0
+    while not cohort.done:
+        cohort.advance(t, t + 0.2, track[step], track[step + 1], model, rng)
+        t, step = t + 0.2, step + 1
+    mean, std, count = cohort.pair_statistics()
+    est_start, est_now = track[0] + 0.1, track[step] + 0.1
+    carried = cohort.carry_to_midpoint(mean, est_start, est_now, t)
+    for b in range(c):  # the same exchanges through the single env's path
+        single = CalibrationRound(n, timing, k, 1.0)
+        single.ranges_m[:] = cohort.ranges_m[b]
+        single._next = len(single.times_s)
+        matrix = single.result()
+        np.testing.assert_allclose(mean[b], matrix.mean_m, rtol=1e-12, equal_nan=True)
+        np.testing.assert_allclose(std[b], matrix.std_m, rtol=1e-12, atol=1e-15, equal_nan=True)
+        np.testing.assert_array_equal(count[b], matrix.count)
+        ref = carry_to_round_midpoint(matrix, single, est_start[b], est_now[b], t)
+        np.testing.assert_allclose(carried[b], ref.mean_m, rtol=1e-12, atol=1e-12, equal_nan=True)
+
+
+def test_batched_first_calibration_finds_the_full_solvers_shape():
+    rng = np.random.default_rng(1)
+    std = 0.05
+    teams = []
+    for _ in range(300):
+        n = 5
+        truth = rng.uniform(0, 15, (n, 2))
+        d = np.linalg.norm(truth[:, None] - truth[None], axis=2)
+        noisy = d + std / np.sqrt(5) * rng.standard_normal((n, n))
+        np.fill_diagonal(noisy, 0.0)
+        teams.append(RangeMatrix(noisy, np.full((n, n), std), np.full((n, n), 5) - 5 * np.eye(n, dtype=int)))
+    mean = np.stack([m.mean_m for m in teams])
+    count = np.stack([m.count for m in teams])
+    complete, pairs, dist, var = symmetric_arrays(mean, count, std)
+    assert complete.all()
+    results = first_calibrations(pairs, dist, var, "huber", 3.0)
+    handled = 0
+    for matrix, res in zip(teams, results, strict=True):
+        if res is None:
+            continue
+        handled += 1
+        full = calibrate_anchors(matrix, dim=2, loss="huber", f_scale=3.0, range_std_m=std)
+        assert full.status == "ok"
+        # the same positions in the same (paper) frame, the same fit and covariance
+        np.testing.assert_allclose(res.positions, full.positions, atol=1e-6)  # stopping rule: 1e-4 sigma
+        assert res.chi2 == pytest.approx(full.chi2, rel=1e-6, abs=1e-9)
+        np.testing.assert_allclose(res.anchor_covariance(), full.anchor_covariance(), rtol=1e-4, atol=1e-12)
+    assert handled >= 250  # random layouts: thin ones and poor fits go to the full solver
+
+
+def test_batched_rigid_align_equals_rigid_align():
+    rng = np.random.default_rng(2)
+    src = rng.normal(size=(50, 5, 2))
+    dst = src @ np.array([[0.0, 1.0], [1.0, 0.0]]) + rng.normal(scale=0.01, size=src.shape)  # a reflection
+    rot, trans = rigid_align_batch(src, dst)
+    for b in range(50):
+        r, t = rigid_align(src[b], dst[b])
+        np.testing.assert_allclose(rot[b], r, atol=1e-10)
+        np.testing.assert_allclose(trans[b], t, atol=1e-10)
+
+
+def test_batched_first_calibration_poor_fits_equal_the_full_solvers():
+    """Four anchors, one NLOS range: the fit test fails and no pair can be dropped (one dof);
+    the batched path returns the poor fit the full solver ends with, or hands the team back."""
+    rng = np.random.default_rng(3)
+    std = 0.05
+    teams = []
+    for _ in range(200):
+        angles = np.pi / 4 + np.arange(4) * np.pi / 2 + rng.uniform(-0.3, 0.3, 4)
+        truth = 6 + 5 * np.column_stack([np.cos(angles), np.sin(angles)])
+        d = np.linalg.norm(truth[:, None] - truth[None], axis=2)
+        noisy = d + std / np.sqrt(5) * rng.standard_normal((4, 4))
+        i, j = rng.choice(4, 2, replace=False)
+        noisy[i, j] += rng.exponential(0.5)  # NLOS lengthens one direction of one pair
+        np.fill_diagonal(noisy, 0.0)
+        teams.append(RangeMatrix(noisy, np.full((4, 4), std), np.full((4, 4), 5) - 5 * np.eye(4, dtype=int)))
+    mean = np.stack([m.mean_m for m in teams])
+    count = np.stack([m.count for m in teams])
+    _, pairs, dist, var = symmetric_arrays(mean, count, std)
+    results = first_calibrations(pairs, dist, var, "huber", 3.0)
+    poor = 0
+    for matrix, res in zip(teams, results, strict=True):
+        if res is None:
+            continue
+        full = calibrate_anchors(matrix, dim=2, loss="huber", f_scale=3.0, range_std_m=std)
+        assert res.status == full.status
+        np.testing.assert_allclose(res.positions, full.positions, atol=1e-5)
+        poor += res.status == "poor_fit"
+    assert poor >= 40  # the case exists and is handled in the batch

@@ -1,0 +1,97 @@
+"""Calibration rounds of many copies that started on the same step, simulated together.
+
+Copies of the batched env that start a team round on the same step share its schedule (same
+team size, K and start time), so their exchanges can be drawn in one call per step instead of
+one :class:`~uwb_env.sim.calibration_round.CalibrationRound` per copy. The exchanges, the
+interpolation of positions within a step and the per-pair aggregation are those of
+``CalibrationRound`` and ``RangeMatrix.from_samples`` (tested against them).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from uwb_env.sim.calibration_round import RoundTiming
+from uwb_env.sim.ranging import RangeModel
+
+
+class RoundCohort:
+    """Team rounds of the copies ``copies`` (C,), all started at ``start_time_s``."""
+
+    def __init__(self, copies: np.ndarray, n_anchors: int, timing: RoundTiming, measurements_per_pair: int,
+                 start_time_s: float):
+        self.copies = np.asarray(copies, dtype=int)
+        self.n_anchors, self.k = n_anchors, measurements_per_pair
+        offsets, self.initiator, self.responder = timing.schedule(n_anchors, measurements_per_pair)
+        self.times_s = start_time_s + offsets
+        self.start_time_s = start_time_s
+        self.end_time_s = start_time_s + timing.duration_s(n_anchors, measurements_per_pair)
+        self.ranges_m = np.full((len(self.copies), len(offsets)), np.nan)
+        self._next = 0
+
+    @property
+    def done(self) -> bool:
+        return self._next >= len(self.times_s)
+
+    @property
+    def progress(self) -> float:
+        return self._next / len(self.times_s)
+
+    def advance(self, t0_s: float, t1_s: float, anchors_t0: np.ndarray, anchors_t1: np.ndarray,
+                range_model: RangeModel, rng: np.random.Generator) -> None:
+        """The exchanges timed in (t0, t1]; ``anchors_t0/t1`` (C, N, dim) of the cohort's copies."""
+        stop = int(np.searchsorted(self.times_s, t1_s, side="right"))
+        if stop <= self._next:
+            return
+        sl = slice(self._next, stop)
+        alpha = ((self.times_s[sl] - t0_s) / max(t1_s - t0_s, 1e-12))[None, :, None]
+        i, j = self.initiator[sl], self.responder[sl]
+        pi = anchors_t0[:, i] + alpha * (anchors_t1[:, i] - anchors_t0[:, i])
+        pj = anchors_t0[:, j] + alpha * (anchors_t1[:, j] - anchors_t0[:, j])
+        self.ranges_m[:, sl] = range_model.measure(np.linalg.norm(pi - pj, axis=2), rng)
+        self._next = stop
+
+    def pair_statistics(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per copy and ordered pair: raw mean, sample std (ddof 1, 0 for one sample) and count,
+        (C, N, N) each (NaN mean/std where no exchange got through), as ``RangeMatrix.from_samples``."""
+        c, n, k = len(self.copies), self.n_anchors, self.k
+        # the schedule runs the K exchanges of each ordered pair back to back
+        block = self.ranges_m.reshape(c, n * (n - 1), k)
+        ok = np.isfinite(block)
+        count = ok.sum(2)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            mean = np.where(ok, block, 0.0).sum(2) / count
+            sq = np.where(ok, (block - mean[..., None]) ** 2, 0.0).sum(2)
+            std = np.sqrt(sq / np.maximum(count - 1, 1))
+        mean[count == 0] = np.nan
+        std[count == 0] = np.nan
+        i, j = self.initiator[::k], self.responder[::k]
+        out_mean, out_std = np.full((c, n, n), np.nan), np.full((c, n, n), np.nan)
+        out_count = np.zeros((c, n, n), dtype=int)
+        out_mean[:, i, j], out_std[:, i, j], out_count[:, i, j] = mean, std, count
+        return out_mean, out_std, out_count
+
+    def pair_mean_times_s(self) -> np.ndarray:
+        """(N, N) mean scheduled time of each ordered pair's exchanges (the diagonal 0)."""
+        n, k = self.n_anchors, self.k
+        t = np.zeros((n, n))
+        t[self.initiator[::k], self.responder[::k]] = self.times_s.reshape(-1, k).mean(1)
+        return t
+
+    def carry_to_midpoint(self, mean_m: np.ndarray, est_start: np.ndarray, est_now: np.ndarray,
+                          now_s: float) -> np.ndarray:
+        """:func:`uwb_env.system.carry_to_round_midpoint` for the whole cohort: (C, N, N) means
+        carried to the round's midpoint geometry along each anchor's odometry velocity."""
+        span = now_s - self.start_time_s
+        if span <= 0:
+            return mean_m
+        t_pair = self.pair_mean_times_s() - (self.start_time_s + 0.5 * span)
+        np.fill_diagonal(t_pair, 0.0)
+        velocity = (est_now - est_start) / span
+        est_mid = 0.5 * (est_start + est_now)
+        diff = est_mid[:, :, None, :] - est_mid[:, None, :, :]
+        dist = np.sqrt((diff * diff).sum(-1))
+        idx = np.arange(self.n_anchors)
+        dist[:, idx, idx] = 1.0
+        rate = ((diff / dist[..., None]) * (velocity[:, :, None, :] - velocity[:, None, :, :])).sum(-1)
+        return mean_m - rate * t_pair
