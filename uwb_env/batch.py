@@ -21,7 +21,7 @@ import numpy as np
 from uwb_env.config import EnvConfig
 from uwb_env.localization import calibrate_anchors
 from uwb_env.localization.alignment import rigid_align_batch
-from uwb_env.localization.batched_calibration import _solve_teams, first_calibrations, symmetric_arrays
+from uwb_env.localization.batched_calibration import first_calibrations, later_calibrations, symmetric_arrays
 from uwb_env.localization.errors import LocalizationError
 from uwb_env.localization.multilateration import check_mirror_2d, refit_stuck_tags_2d, track_tags_2d
 from uwb_env.measurements import RangeMatrix
@@ -211,8 +211,10 @@ class BatchedSystem:
         rows = np.flatnonzero(complete)
         if len(rows):
             solver = self.config.solver
-            for r, res in zip(rows, _solve_teams(pairs, dist[rows], var[rows], est_mid[rows], solver.loss,
-                                                 solver.f_scale_sigmas, solver.gauge, 50, 1e-3, 8.0), strict=True):
+            prior_std = np.sqrt(np.maximum(self.predicted_anchor_var_m2()[copies[rows]], self.range_std_m**2))
+            for r, res in zip(rows, later_calibrations(pairs, dist[rows], var[rows], est_mid[rows], prior_std,
+                                                       solver.loss, solver.f_scale_sigmas, solver.gauge),
+                              strict=True):
                 results[r] = res
         ok = np.zeros(len(copies), dtype=bool)
         for row, k in enumerate(copies):

@@ -68,6 +68,66 @@ def calibrate_with_priors(matrices: list[RangeMatrix], priors: np.ndarray, range
     return out
 
 
+def later_calibrations(pairs: np.ndarray, dist: np.ndarray, var: np.ndarray, prior: np.ndarray,
+                       prior_std_m: np.ndarray, loss: str = "huber", f_scale: float = 3.0, gauge: str = "prior",
+                       max_iterations: int = 50, fit_alpha: float = 1e-3,
+                       restart_sigmas: float = 8.0) -> list[BatchedCalibration | None]:
+    """Later calibrations of K complete 2D teams from arrays (``calibrate_with_priors``), plus
+    the poor fits the full solver could do no more about. With ``prior_std_m`` (K, N) the full
+    solver, on a poor fit, also solves from the ranges alone and from single-anchor reflections
+    and keeps the lowest cost plus prior chi-square; with fewer than 3 dof it cannot reject a
+    pair. Where the prior-started solution keeps the lowest score among the MDS-started one and
+    its own reflections, the full solver ends with it too: it is returned as ``poor_fit``;
+    otherwise the team is handed back (gauge ``prior`` only)."""
+    args = (loss, f_scale, gauge, max_iterations, fit_alpha, restart_sigmas)
+    results = _solve_teams(pairs, dist, var, prior, *args, accept_poor=True)
+    n = prior.shape[1]
+    dof = len(pairs) - (2 * n - 3)
+    poor = np.array([r for r, res in enumerate(results) if res is not None and res.status == "poor_fit"], dtype=int)
+    if not len(poor):
+        return results
+    if dof >= 3 or gauge != "prior":  # the full solver would reject outliers / align about anchor 0
+        for r in poor:
+            results[r] = None
+        return results
+    weight = 2.0 / prior_std_m[poor] ** 2  # dim / std^2, as the full solver's prior term
+
+    def score(cands, rows):
+        out = np.full(len(rows), np.inf)
+        for q, c in enumerate(cands):
+            if c is not None:
+                d2 = ((c.positions - prior[poor][rows[q]]) ** 2).sum(1)
+                out[q] = c.cost + 0.5 * float(d2 @ weight[rows[q]])
+        return out
+
+    idx = np.arange(len(poor))
+    best = score([results[r] for r in poor], idx)
+    base = np.stack([results[r].positions for r in poor])
+    # every alternative start of every poor team in one batched solve
+    starts = [_mds_starts(pairs, dist[poor])] + [_reflect_anchors(base, k) for k in range(n)]
+    reps = len(starts)
+    cands = _solve_teams(pairs, np.tile(dist[poor], (reps, 1)), np.tile(var[poor], (reps, 1)),
+                         np.concatenate(starts), *args, accept_poor=True)
+    beaten = (score(cands, np.tile(idx, reps)).reshape(reps, -1) < best - 1e-9).any(0)
+    for r, bad in zip(poor, beaten, strict=True):
+        if bad:
+            results[r] = None
+    return results
+
+
+def _mds_starts(pairs: np.ndarray, dist: np.ndarray) -> np.ndarray | None:
+    """Classical MDS (2D) of complete matrices, (K, n, 2)."""
+    k_teams = dist.shape[0]
+    n = int(pairs.max()) + 1
+    d2 = np.zeros((k_teams, n, n))
+    d2[:, pairs[:, 0], pairs[:, 1]] = dist**2
+    d2[:, pairs[:, 1], pairs[:, 0]] = dist**2
+    centre = np.eye(n) - 1.0 / n
+    values, vectors = np.linalg.eigh(-0.5 * centre @ d2 @ centre)
+    top = np.maximum(values[:, -2:][:, ::-1], 0.0)
+    return vectors[:, :, -2:][:, :, ::-1] * np.sqrt(top)[:, None, :]
+
+
 def symmetric_arrays(mean_m: np.ndarray, count: np.ndarray, range_std_m: float):
     """``RangeMatrix.complete_symmetric(std_m=range_std_m)`` for (K, N, N) means and counts at
     once: (complete (K,) bool, pairs (P, 2), dist (K, P), var (K, P)); a team is complete when
@@ -127,11 +187,11 @@ def first_calibrations(pairs: np.ndarray, dist: np.ndarray, var: np.ndarray, los
         # one; where one does, hand the team back.
         best = np.array([results[r].cost for r in poor])
         base = np.stack([results[r].positions for r in poor])
-        lower = np.zeros(len(poor), dtype=bool)
-        for k in range(n):
-            starts = _reflect_anchors(base, k)
-            cand = _solve_group(pairs, dist[rows[poor]], var[rows[poor]], starts, 1, *args, accept_poor=True)
-            lower |= np.array([c is not None and c.cost < b - 1e-9 for c, b in zip(cand, best, strict=True)])
+        starts = np.concatenate([_reflect_anchors(base, k) for k in range(n)])  # one batched solve
+        cand = _solve_group(pairs, np.tile(dist[rows[poor]], (n, 1)), np.tile(var[rows[poor]], (n, 1)), starts, 1,
+                            *args, accept_poor=True)
+        costs = np.array([np.inf if c is None else c.cost for c in cand]).reshape(n, -1)
+        lower = (costs < best - 1e-9).any(0)
         for r, bad in zip(poor, lower, strict=True):
             if bad:
                 results[r] = None
@@ -158,7 +218,8 @@ def _reflect_anchors(x: np.ndarray, k: int) -> np.ndarray:
     return out
 
 
-def _solve_teams(pairs, dist, var, prior, loss, f_scale, gauge, max_iterations, fit_alpha, restart_sigmas):
+def _solve_teams(pairs, dist, var, prior, loss, f_scale, gauge, max_iterations, fit_alpha, restart_sigmas,
+                 accept_poor=False):
     """The solve of :func:`calibrate_with_priors` on arrays, grouped by gauge reference."""
     out: list[BatchedCalibration | None] = [None] * len(prior)
     # the gauge of the full solver: anchor 0 at the origin, the anchor farthest from it on +x
@@ -166,7 +227,7 @@ def _solve_teams(pairs, dist, var, prior, loss, f_scale, gauge, max_iterations, 
     for b in np.unique(far):
         rows = np.flatnonzero(far == b)
         results = _solve_group(pairs, dist[rows], var[rows], prior[rows], int(b), loss, f_scale, gauge,
-                               max_iterations, fit_alpha, restart_sigmas)
+                               max_iterations, fit_alpha, restart_sigmas, accept_poor)
         for r, res in zip(rows, results, strict=True):
             out[r] = res
     return out
