@@ -210,3 +210,13 @@ def test_summary_csv_floats_rounded_and_gt_note_only_with_a_gt_policy(tmp_path):
     numbers = [(v, as_float(v)) for v in values if as_float(v) is not None and "." in v]
     assert numbers and all(float(f"{x:.6g}") == x and len(v) < 14 for v, x in numbers)  # not 5.8999999999999995
     assert results["written"] and not any(p.endswith(".png") for p in results["written"])
+
+
+def test_default_training_path_is_batched_where_the_config_allows():
+    from uwb_env.training.train import resolve_env
+
+    assert resolve_env(Args(), {"sim": {"dim": 2}}) == "batched"
+    assert resolve_env(Args(), {"sim": {"dim": 3}}) == "scheduler"  # the batched core is 2D
+    assert resolve_env(Args(), {"action_mode": "per_anchor"}) == "scheduler"
+    assert resolve_env(Args(vec_env="dummy"), {}) == "scheduler"  # asked for one Gymnasium env per copy
+    assert resolve_env(Args(env="parallel"), {}) == "parallel"

@@ -20,6 +20,7 @@ uses its own held-out seeds (``training.evaluate.EVAL_SEED_BASE``).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import json
 import re
@@ -52,8 +53,9 @@ class Args:
     """hyperparameter overrides, ``key=value`` (value parsed as YAML)"""
     env_config: str | None = None
     """YAML/JSON file with EnvConfig overrides (the scenario)"""
-    vec_env: str = "dummy"
-    """``dummy`` or ``subproc`` (scheduler env only)"""
+    vec_env: str = "auto"
+    """``auto`` (scheduler env: the batched copies where the env config allows it, 2D with the
+    ``calibrate`` action mode, else ``dummy``), ``dummy`` or ``subproc``"""
     checkpoint_freq: int = 20_000
     """env steps between checkpoints"""
     eval_freq: int = 20_000
@@ -79,10 +81,21 @@ def _check(args: Args) -> None:
         raise ValueError(f"algo={args.algo!r}: must be one of {ALGOS}")
     if args.env not in ENV_IDS:
         raise ValueError(f"env={args.env!r}: must be one of {tuple(ENV_IDS)}")
-    if args.vec_env not in ("dummy", "subproc"):
-        raise ValueError(f"vec_env={args.vec_env!r}: must be 'dummy' or 'subproc'")
+    if args.vec_env not in ("auto", "dummy", "subproc"):
+        raise ValueError(f"vec_env={args.vec_env!r}: must be 'auto', 'dummy' or 'subproc'")
     if args.total_timesteps < 1:
         raise ValueError(f"total_timesteps={args.total_timesteps!r}: must be >= 1")
+
+
+def resolve_env(args: Args, env_config: dict) -> str:
+    """The env path ``main`` trains on: ``--env scheduler`` with ``--vec-env auto`` takes the
+    batched copies (one numpy step for all of them; same observations, reward and dynamics,
+    tested) when the config allows it: 2D and the ``calibrate`` action mode."""
+    if args.env != "scheduler" or args.vec_env != "auto":
+        return args.env
+    sim = env_config.get("sim", {})
+    batchable = sim.get("dim", 2) == 2 and env_config.get("action_mode", "calibrate") == "calibrate"
+    return "batched" if batchable else "scheduler"
 
 
 def make_vec_env(kind: str, n_envs: int, env_config: dict, seed: int, vec_env: str = "dummy"):
@@ -148,11 +161,16 @@ def main(args: Args) -> dict:
     from uwb_env.config import EnvConfig
 
     _check(args)
-    hp = load_hyperparams(args)
     import torch
 
     torch.set_num_threads(args.torch_threads)  # small MLPs: threads cost more than they give
     env_config = EnvConfig.from_dict(load_overrides(args.env_config, "--env-config")).to_dict()
+    requested = args.env
+    args = dataclasses.replace(args, env=resolve_env(args, env_config))
+    if args.env != requested:
+        print(f"train: --env {requested} on the batched copies (--vec-env dummy for one Gymnasium env per copy)",
+              flush=True)
+    hp = load_hyperparams(args)
     n_envs = int(hp.pop("n_envs", 1))
     normalize = bool(hp.pop("normalize", False))
     norm_reward = bool(hp.pop("norm_reward", False))
@@ -304,7 +322,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--hyperparams", default=None, help="YAML file (default: training/hyperparams/<algo>.yml)")
     p.add_argument("--hp", nargs="*", default=[], help="overrides key=value, e.g. learning_rate=1e-4")
     p.add_argument("--env-config", default=None, help="YAML/JSON file with EnvConfig overrides")
-    p.add_argument("--vec-env", choices=("dummy", "subproc"), default=d.vec_env, help="SB3 vector env class")
+    p.add_argument("--vec-env", choices=("auto", "dummy", "subproc"), default=d.vec_env,
+                   help="auto: the batched copies where the env config allows (2D, calibrate action mode); "
+                   "dummy/subproc: SB3 vector env classes over Gymnasium envs")
     p.add_argument("--checkpoint-freq", type=int, default=d.checkpoint_freq, help="env steps between checkpoints")
     p.add_argument("--eval-freq", type=int, default=d.eval_freq,
                    help="env steps between validation runs (best/ and eval/); 0 = none")
