@@ -10,8 +10,9 @@ drifts hit all alike:
 - ``single_fixed10_over_mpe``: one scheduler env with ``fixed:10`` vs PettingZoo MPE
   ``simple_spread`` (mpe2), steps/s;
 - ``reset_s_b4096``: one reset of 4096 copies;
-- ``sb3_ppo_steps_per_s_default`` (PPO on ``uwb-env train``'s default path, DummyVecEnv(8) of
-  the scheduler env) and ``sb3_ppo_over_dummy8`` (the batched path, 32 copies, over it);
+- ``sb3_ppo_steps_per_s_default`` (PPO on ``uwb-env train``'s default path: the batched copies,
+  with that path's hyperparameters) and ``sb3_ppo_over_dummy8`` (over DummyVecEnv(8) of the
+  Gymnasium scheduler env with its hyperparameters, the previous default);
 - ``--before REV``: the batched figure at B = 1024 of another revision, measured in the same
   run (a temporary worktree, a subprocess of this interpreter) -> ``batched_b1024_over_before``.
 
@@ -108,20 +109,27 @@ def alternating(steppers: dict, per_call: dict, seconds: float, rounds: int) -> 
     return best
 
 
-def ppo_rate(kind: str, n_envs: int, steps: int) -> float | None:
+def ppo_rate(env: str, vec_env: str, steps: int) -> float | None:
+    """PPO env steps/s (rollouts and updates) on a training path with its own hyperparameters."""
     try:
         from stable_baselines3 import PPO
     except ImportError:
         return None
     import torch
-    from uwb_env.training.train import make_vec_env
+    from uwb_env.training.train import Args, load_hyperparams, make_vec_env, resolve_env
 
     from uwb_env.config import EnvConfig
 
     torch.set_num_threads(1)
-    venv = make_vec_env(kind, n_envs, EnvConfig().to_dict(), seed=0)
-    model = PPO("MlpPolicy", venv, n_steps=max(steps // n_envs, 16), batch_size=256, n_epochs=1, seed=0,
-                verbose=0, device="cpu")
+    config = EnvConfig().to_dict()
+    args = Args(env=env, vec_env=vec_env)
+    args = Args(env=resolve_env(args, config), vec_env=vec_env)
+    hp = load_hyperparams(args)
+    n_envs = int(hp.pop("n_envs", 1))
+    for key in ("normalize", "norm_reward"):
+        hp.pop(key, None)
+    venv = make_vec_env(args.env, n_envs, config, seed=0, vec_env="dummy")
+    model = PPO(hp.pop("policy", "MlpPolicy"), venv, seed=0, verbose=0, device="cpu", **hp)
     t0 = time.perf_counter()
     model.learn(total_timesteps=steps)
     return model.num_timesteps / (time.perf_counter() - t0)
@@ -184,12 +192,12 @@ def main() -> None:
     if mpe is not None:
         fig["mpe_simple_spread_steps_per_s"] = rates["mpe"]
         fig["single_fixed10_over_mpe"] = rates["single_fixed10"] / rates["mpe"]
-    steps = 2048 if args.quick else 16384
-    default, batched = ppo_rate("scheduler", 8, steps), ppo_rate("batched", 32, steps)
+    steps = 8192 if args.quick else 32768
+    default, dummy = ppo_rate("scheduler", "auto", steps), ppo_rate("scheduler", "dummy", steps)
     if default is not None:
-        fig["sb3_ppo_steps_per_s_default"] = default
-        fig["sb3_ppo_steps_per_s_batched32"] = batched
-        fig["sb3_ppo_over_dummy8"] = batched / default  # the default path is DummyVecEnv(8) today
+        fig["sb3_ppo_steps_per_s_default"] = default  # `uwb-env train`'s default path: batched copies
+        fig["sb3_ppo_steps_per_s_dummy8"] = dummy
+        fig["sb3_ppo_over_dummy8"] = default / dummy
     if args.before:
         fig["before_revision"] = args.before
         fig["batched_copy_steps_per_s_b1024_before"] = before(args.before, seconds)
