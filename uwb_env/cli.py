@@ -158,10 +158,11 @@ def _emulate_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--delay", type=float, default=0.0, help="fault: extra response latency (s)")
     p.add_argument("--tag-firmware", choices=("pans", "tiers"), default="pans",
                    help="tags: stock PANS (ranging to a PANS anchor set) or the TIERS localization build")
+    p.add_argument("--all-pans", action="store_true",
+                   help="the all-PANS deployment: a stock-PANS anchor per port (role switching), PANS tags")
 
 
 def _emulate(args: argparse.Namespace) -> int:
-    import time
 
     from uwb_env.config import SimConfig
     from uwb_env.hardware.emulator import Faults, Scene, standard_setup
@@ -171,8 +172,17 @@ def _emulate(args: argparse.Namespace) -> int:
     scene = Scene(SimConfig.from_dict(load_overrides(args.config)), seed=args.seed)
     faults = {"anchor": Faults(hang=args.hang_anchor, truncate_row_probability=args.truncate_rows, **common)}
     faults |= {f"tag_{i}": Faults(**common) for i in range(scene.config.n_tags)}
-    emu, urls = standard_setup(scene, faults, transport="socket" if args.socket else "pty", seed=args.seed,
-                               tag_firmware=args.tag_firmware)
+    transport = "socket" if args.socket else "pty"
+    if args.all_pans:
+        from uwb_env.hardware.emulator import pans_setup
+
+        emu, urls = pans_setup(scene, faults, transport=transport, seed=args.seed)
+        print("Emulated DWM1001 devices (115200 8N1), stock PANS firmware (generic TLV mode; two \\r for the shell):")
+        for name, url in urls.items():
+            print(f"  {name:8s} {url}")
+        print("connect_pans(sim, [anchor URLs], [tag URLs]) reads the anchor IDs with 'si'. Ctrl-C stops.", flush=True)
+        return _serve(emu, args.duration)
+    emu, urls = standard_setup(scene, faults, transport=transport, seed=args.seed, tag_firmware=args.tag_firmware)
     print("Emulated DWM1001 devices (115200 8N1):")
     print(f"  {'anchor':8s} {urls['anchor']:32s} TIERS autocalibration firmware, anchor ID 1 (send b'S')")
     for name, url in urls.items():
@@ -188,9 +198,15 @@ def _emulate(args: argparse.Namespace) -> int:
         print(f"The tags range to PANS anchors with IDs {', '.join(emulated_anchor_ids())} "
               "(connect(..., pans_anchor_ids=...)).")
     print("Ctrl-C stops.", flush=True)
+    return _serve(emu, args.duration)
+
+
+def _serve(emu, duration: float | None) -> int:
+    import time
+
     try:
         with emu:
-            deadline = None if args.duration is None else time.monotonic() + args.duration
+            deadline = None if duration is None else time.monotonic() + duration
             while deadline is None or time.monotonic() < deadline:
                 time.sleep(0.1)
     except KeyboardInterrupt:

@@ -26,6 +26,7 @@ import numpy as np
 from uwb_env.config import ConfigBase, SimConfig
 from uwb_env.hardware.drivers import PansShellTagDriver, TiersAnchorDriver, TiersTagDriver
 from uwb_env.hardware.errors import HardwareError
+from uwb_env.hardware.pans_anchor import PansAnchorDriver, RoleSwitchCalibrator
 from uwb_env.hardware.tiers import unwrap_negative_means
 from uwb_env.localization.errors import LocalizationError
 from uwb_env.measurements import RangeMatrix
@@ -40,6 +41,9 @@ class HardwareConfig(ConfigBase):
     tiers_correct_bias: bool = True
     pans_correct_bias: bool = False
     round_timeout_s: float = 4.0
+    # all-PANS: one anchor's role switch (two reboots, shell entries, configuration) plus
+    # K ranges at 10 Hz; an estimate for the busy-channel model, not a measurement
+    pans_role_switch_s: float = 3.0
     tag_range_max_age_s: float = 0.5  # older lec reports count as missing
     # a lec range farther than this from the distance between the tag's own position estimate
     # (same line) and the anchor's reported position was damaged on the wire: rejected, counted
@@ -48,7 +52,8 @@ class HardwareConfig(ConfigBase):
     realtime: bool = True  # wait for each dt_s tick (False: step as fast as called, e.g. replay)
 
     def __post_init__(self) -> None:
-        self._positive("round_timeout_s", "tag_range_max_age_s", "tag_range_consistency_m", "tag_watchdog_s")
+        self._positive("round_timeout_s", "pans_role_switch_s", "tag_range_max_age_s", "tag_range_consistency_m",
+                       "tag_watchdog_s")
 
 
 class CalibrationFailed(LocalizationError):
@@ -58,12 +63,14 @@ class CalibrationFailed(LocalizationError):
 class HardwareRound:
     """A round running on the devices; the same surface as the simulator's round."""
 
-    def __init__(self, start_time_s: float, expected_s: float, n: int):
+    def __init__(self, start_time_s: float, expected_s: float, n: int, initiators: tuple[int, ...] | None = None):
         self.start_time_s = start_time_s
         self.end_time_s = start_time_s + expected_s
         self.expected_s = expected_s
-        idx = np.arange(n)
-        self.initiator, self.responder = np.repeat(idx, n - 1), np.array([j for i in idx for j in idx if j != i])
+        self.initiators = initiators  # None: a team round; (i,): anchor i re-located against the others
+        idx = np.arange(n) if initiators is None else np.asarray(initiators)
+        self.initiator = np.repeat(idx, n - 1)
+        self.responder = np.array([j for i in idx for j in range(n) if j != i])
         self.done = False
         self.matrix: RangeMatrix | None = None
         self.error: str | None = None
@@ -86,13 +93,17 @@ class HardwareWorld(RoundRunner):
 
     has_ground_truth = False
 
-    def __init__(self, config: SimConfig, anchor: TiersAnchorDriver, tags: list[PansShellTagDriver],
+    def __init__(self, config: SimConfig, anchor: TiersAnchorDriver | RoleSwitchCalibrator,
+                 tags: list[PansShellTagDriver | TiersTagDriver],
                  hardware: HardwareConfig | None = None, anchor_ids: list[str] | None = None,
                  odometry_source: Callable[[float], np.ndarray] | None = None,
                  move_callback: Callable[[np.ndarray, np.ndarray, np.ndarray], None] | None = None,
                  range_model: RangeModel | None = None):
-        if config.n_anchors != 4:
+        self.role_switching = isinstance(anchor, RoleSwitchCalibrator)
+        if not self.role_switching and config.n_anchors != 4:
             raise ValueError(f"n_anchors={config.n_anchors!r}: the TIERS firmware calibrates exactly 4 anchors")
+        if self.role_switching and len(anchor.anchors) != config.n_anchors:
+            raise ValueError(f"anchors: {len(anchor.anchors)} PANS anchor ports for n_anchors={config.n_anchors}")
         if len(tags) != config.n_tags:
             raise ValueError(f"tags: {len(tags)} tag ports for n_tags={config.n_tags}: give one port per tag "
                              f"or set sim.n_tags={len(tags)}")
@@ -124,7 +135,9 @@ class HardwareWorld(RoundRunner):
         # TIERS tags run the same SS-TWR code as the calibration build, with its bias).
         tag_bias = self.hardware.tiers_correct_bias if self.tag_firmware == "tiers" else self.hardware.pans_correct_bias
         self.tag_correction = self._correction(tag_bias)
-        self.round_correction = self._correction(self.hardware.tiers_correct_bias)
+        # calibration ranges: TIERS SS-TWR (biased) or PANS anchors surveyed as tags
+        self.round_correction = self._correction(self.hardware.pans_correct_bias if self.role_switching
+                                                 else self.hardware.tiers_correct_bias)
         self.timing = RoundTiming.fit(config.calibration)
         self.odometry = OdometryModel(config.odometry)  # its variance model predicts the drift
         self.odometry_source = odometry_source
@@ -173,7 +186,9 @@ class HardwareWorld(RoundRunner):
         except HardwareError as err:  # RoundFailed, or the port went away: a failed round, never stuck
             rnd.done, rnd.error = True, str(err)
             return
-        if message is not None:
+        if message is not None and self.role_switching:
+            rnd.done, rnd.matrix = True, message
+        elif message is not None:
             rnd.done = True
             mean, unwrapped, ambiguous = unwrap_negative_means(message.mean_m)
             self.means_unwrapped += unwrapped
@@ -228,10 +243,24 @@ class HardwareWorld(RoundRunner):
         expected = float(np.linalg.norm(np.subtract(position_m, r.position_m)))
         return abs(r.distance_m - expected) <= self.hardware.tag_range_consistency_m
 
-    def start_calibration_round(self, measurements_per_pair: int | None = None) -> HardwareRound:
+    def start_calibration_round(self, measurements_per_pair: int | None = None, initiators=None) -> HardwareRound:
+        """A team round (``initiators`` None) or, on the all-PANS deployment, the anchors of
+        ``initiators`` re-located one at a time (a per-anchor round: one index)."""
+        n = self.config.n_anchors
         k = measurements_per_pair or self.config.calibration.measurements_per_pair
-        self.round = HardwareRound(self.time_s, self.timing.duration_s(self.config.n_anchors, k),
-                                   self.config.n_anchors)
+        if self.role_switching:
+            order = tuple(range(n)) if initiators is None else tuple(int(i) for i in initiators)
+            expected = len(order) * (self.hardware.pans_role_switch_s + 0.1 * k)
+            self.round = HardwareRound(self.time_s, expected, n, None if initiators is None else order)
+            try:
+                self.anchor.start(order, k)
+            except HardwareError as err:
+                self.round.done, self.round.error = True, str(err)
+            return self.round
+        if initiators is not None:
+            raise ValueError("initiators: the TIERS firmware ranges every pair in one round; per-anchor rounds need "
+                             "the all-PANS deployment (connect_pans, role switching)")
+        self.round = HardwareRound(self.time_s, self.timing.duration_s(n, k), n)
         try:
             self.anchor.start_round()
         except HardwareError as err:  # e.g. the anchor's port is away: a failed round, reported in infos
@@ -245,7 +274,11 @@ class HardwareWorld(RoundRunner):
         return finished
 
     def close(self) -> None:
-        for transport in {self.anchor.transport, *(t.transport for t in self.tags)}:
+        if self.role_switching:
+            self.anchor.close()
+        else:
+            self.anchor.transport.close()
+        for transport in {t.transport for t in self.tags}:
             transport.close()
 
 
@@ -304,4 +337,30 @@ def connect(config: SimConfig, anchor_url: str, tag_urls: list[str], *, pans_anc
     else:
         tags = [PansShellTagDriver(SerialTransport(url, recorder=recorder), pace_s=shell_pace_s) for url in tag_urls]
     return HardwareWorld(config, anchor, tags, hardware, anchor_ids=pans_anchor_ids,
+                         odometry_source=odometry_source, move_callback=move_callback)
+
+
+def connect_pans(config: SimConfig, anchor_urls: list[str], tag_urls: list[str], *,
+                 anchor_ids: list[str] | None = None, network_id: int = 0x1234, hardware: HardwareConfig | None = None,
+                 recorder=None, odometry_source=None, move_callback=None, shell_pace_s: float = 0.0) -> HardwareWorld:
+    """The all-PANS deployment: stock firmware everywhere (what every DWM1001 ships with).
+
+    ``anchor_urls``: one port per anchor, in anchor order (each anchor is wired to the host, or
+    to its robot's computer); ``tag_urls``: stock-PANS tags streaming ``lec``. The anchors' IDs
+    are read from each anchor (``si``) unless ``anchor_ids`` gives them. Calibration re-locates
+    anchors one at a time by role switching (:mod:`uwb_env.hardware.pans_anchor`): a per-anchor
+    round (``action_mode="per_anchor"``) switches one anchor, a team round every anchor in turn.
+    """
+    from uwb_env.hardware.transport import SerialTransport
+
+    if len(anchor_urls) != config.n_anchors:
+        raise ValueError(f"anchor_urls: {len(anchor_urls)} ports for n_anchors={config.n_anchors}; give one port "
+                         "per anchor or set sim.n_anchors")
+    hardware = hardware or HardwareConfig()
+    anchors = [PansAnchorDriver(SerialTransport(url, recorder=recorder), pace_s=shell_pace_s) for url in anchor_urls]
+    if anchor_ids is None:
+        anchor_ids = [a.read_id() for a in anchors]
+    calibrator = RoleSwitchCalibrator(anchors, list(anchor_ids), network_id=network_id)
+    tags = [PansShellTagDriver(SerialTransport(url, recorder=recorder), pace_s=shell_pace_s) for url in tag_urls]
+    return HardwareWorld(config, calibrator, tags, hardware, anchor_ids=list(anchor_ids),
                          odometry_source=odometry_source, move_callback=move_callback)

@@ -8,6 +8,8 @@ truth and the fitted range model). Devices are byte-level state machines:
   and population stds of K ranges per ordered pair, in truncated centimetres).
 - :class:`TiersTagDevice`: a tag of the TIERS localization build (banner, latched ``S``, one
   line per polling cycle, 255 bytes and the leaked partial sum of an anchor that times out).
+- :class:`PansAnchorDevice`: a stock-PANS anchor that can be switched to tag mode and back
+  (``acts``/``acas``/``nis``/``reset``/``si``), for the all-PANS deployment (:func:`pans_setup`).
 - :class:`PansTagDevice`: a PANS tag in generic (TLV) mode after reset; ``\\r\\r`` enters the
   shell (banner, ``dwm> ``, echo, ``lec``/``lep``/``les`` toggles at the update rate, ``aurs``,
   ``quit``, ``reset``, empty line repeats); TLV ``dwm_loc_get``/``pos_get``/``cfg_get``/update
@@ -462,6 +464,104 @@ class PansTagDevice:
         return tlv.encode(tlv.RET_VAL, b"\x01")
 
 
+class PansAnchorDevice(PansTagDevice):
+    """A stock-PANS anchor (scene anchor ``anchor_index``, ID ``anchor_id4(anchor_index)``) that
+    can be switched to tag mode and back, as host scripts do to survey anchors with stock
+    firmware (``esauortiz/dwm1001_drivers:scripts/autocalibration_sample_uart.py``):
+    ``acts <9 flags>`` / ``acas <7 flags>`` store the next role, ``nis 0x....`` the network,
+    ``reset`` reboots into it (generic mode, silent for ``boot_s``). ``si`` prints the node's
+    address and mode. In tag mode ``lec``/``les`` stream ranges to the other anchors (at most 4,
+    the nearest, as a PANS tag picks them); in anchor mode the streams print nothing.
+    """
+
+    def __init__(self, scene: Scene, anchor_index: int, faults: Faults = Faults(), seed: int = 5,
+                 boot_s: float = 0.3, network_id: int = 0x1234):
+        super().__init__(scene, anchor_index, faults, seed, glue_prompt=False)
+        self.anchor_index, self.boot_s = anchor_index, boot_s
+        self.role, self._next_role = "anchor", "anchor"
+        self.network_id = self._next_network = network_id
+        self._booting_until = -np.inf
+        self.role_switches = 0
+
+    def receive(self, data: bytes, now: float) -> None:
+        if now < self._booting_until:
+            return  # still booting: the UART is not up
+        super().receive(data, now)
+
+    def poll(self, now: float) -> bytes:
+        if now < self._booting_until:
+            return b""
+        if self.role == "anchor":
+            self._next_report = np.inf  # anchors do not range as tags: the streams print nothing
+        return super().poll(now)
+
+    def _execute(self, command: str, now: float) -> None:
+        name, *args = command.split() or [""]
+        ints = all(a.lstrip("-").isdigit() for a in args)
+        if name == "acts" and len(args) == 9 and ints:
+            self._next_role = "tag"
+        elif name == "acas" and len(args) == 7 and ints:
+            self._next_role = "anchor"
+        elif name == "nis" and len(args) == 1 and args[0].lower().startswith("0x"):
+            self._next_network = int(args[0], 16)
+        elif name == "si":
+            mode = "tn (act,twr,np,le)" if self.role == "tag" else "an (act,-,-)"
+            addr = f"DECA00000000{anchor_id4(self.anchor_index)}"
+            self.out += (f"[000001.000 INF] sys: fw2 fw_ver=x01020001 cfg_ver=x00010700\r\n"
+                         f"[000001.000 INF] uwb0: panid=x{self.network_id:04X} addr=x{addr}\r\n"
+                         f"[000001.000 INF] mode: {mode}\r\n").encode()
+        elif name == "reset":
+            if self._next_role != self.role:
+                self.role_switches += 1
+            self.role, self.network_id = self._next_role, self._next_network
+            self.reboot()  # RAM state (streams, the line, the last command) is gone
+            self._booting_until = now + self.boot_s
+            return
+        else:
+            super()._execute(command, now)
+            return
+        if name in ("acts", "acas", "nis"):
+            self.out += b"err code: 0\r\n"
+        self.out += b"dwm> "
+
+    def _ranges(self) -> list[AnchorRange]:
+        anchors = self.scene.anchors_true()
+        me = anchors[self.anchor_index]
+        order = [i for i in np.argsort(np.linalg.norm(anchors - me, axis=1)) if i != self.anchor_index][:4]
+        out = []
+        for i in sorted(order):
+            d = self.scene.measure(anchors[i], me, 1, unbiased=True)[0]
+            if np.isfinite(d):
+                out.append(AnchorRange(anchor_id4(int(i)), tuple(np.r_[anchors[i], np.zeros(3 - len(anchors[i]))]),
+                                       float(d)))
+        return out
+
+    def _position_mm(self) -> tuple[int, int, int]:
+        p = np.r_[self.scene.anchors_true()[self.anchor_index], 0.0, 0.0][:3]
+        return tuple(int(round(v * 1000)) for v in p)
+
+    def _report(self) -> str:
+        return format_lec(self._ranges(), None, None)  # acts ... loc_engine 0: no position
+
+
+def pans_setup(scene: Scene, faults: dict[str, Faults] | None = None, transport: str = "pty", seed: int = 0,
+               boot_s: float = 0.3) -> tuple[Emulator, dict[str, str]]:
+    """The all-PANS deployment: a stock-PANS anchor per scene anchor (``anchor_0`` ...) and a
+    PANS tag per scene tag (``tag_0`` ...), each on its own port: name -> URL."""
+    faults = faults or {}
+    emu = Emulator(scene)
+    make = (lambda: SocketPort()) if transport == "socket" else (lambda: PtyPort())
+    urls = {}
+    for i in range(scene.config.n_anchors):
+        name = f"anchor_{i}"
+        urls[name] = emu.add(name, PansAnchorDevice(scene, i, faults.get(name, Faults()), seed=seed + 5,
+                                                    boot_s=boot_s), make())
+    for t in range(scene.config.n_tags):
+        name = f"tag_{t}"
+        urls[name] = emu.add(name, PansTagDevice(scene, t, faults.get(name, Faults()), seed=seed + 2), make())
+    return emu, urls
+
+
 def _apply_faults(data: bytes, faults: Faults, rng: np.random.Generator) -> bytes:
     if not data:
         return data
@@ -596,12 +696,13 @@ class Emulator:
     def __init__(self, scene: Scene, tick_s: float = 0.002):
         self.scene, self.tick_s = scene, tick_s
         self.ports: dict[str, object] = {}
+        self.devices: dict[str, object] = {}
         self._threads: list[threading.Thread] = []
         self._stop = threading.Event()
 
     def add(self, name: str, device, port=None) -> str:
         port = port or PtyPort()
-        self.ports[name] = port
+        self.ports[name], self.devices[name] = port, device
         t = threading.Thread(target=self._serve, args=(device, port), name=f"emulator {name}", daemon=True)
         self._threads.append(t)
         t.start()
