@@ -16,6 +16,7 @@ class PerAnchorThresholdPolicy:
     for a team round instead (one round re-estimates them all: cheaper than one by one)."""
 
     uses_ground_truth = False
+    action_mode = "per_anchor"  # the evaluation harness runs it with these actions
 
     def __init__(self, threshold_m: float = 0.15, team_fraction: float = 0.5):
         self.threshold_m = _positive("threshold_m", threshold_m)

@@ -161,3 +161,19 @@ def test_tuned_heuristics_join_and_the_best_is_the_reference(capsys):
                         workers=1, out=None, progress=False, tuned="none"))
     best = max((r for r in results["summary"] if r["policy"] != "oracle:0.2"), key=lambda r: r["return"])
     assert results["reference"] == best["policy"] and "untuned" in results["reference_kind"]
+
+
+def test_per_anchor_heuristics_get_their_actions_in_the_same_scenario():
+    """A per-anchor heuristic is run with the per-anchor actions (re-locate me / team round) on
+    the scenario everyone else runs; its anchor rounds show up in the calibration rate."""
+    from uwb_env.training.evaluate import run_episode
+    from uwb_env.training.tune import FAMILIES, spec_of
+
+    from uwb_env.config import EnvConfig
+
+    config = EnvConfig.from_dict({"max_cycles": 120}).to_dict()
+    assert config["action_mode"] == "calibrate"
+    per_anchor = run_episode("per_anchor_threshold:0.1", EVAL_SEED_BASE, config)
+    assert per_anchor["calibrations_per_min"] > 0 and np.isfinite(per_anchor["mean_tag_error_m"])
+    assert "per_anchor_threshold" in FAMILIES  # the tuner tunes it like the team heuristics
+    assert spec_of("per_anchor_threshold", 0.12) == "per_anchor_threshold:0.12"

@@ -117,8 +117,11 @@ def run_episode(spec: str, seed: int, config_dict: dict) -> dict:
     from uwb_env.env.policy import rollout
 
     config = EnvConfig.from_dict(config_dict)
-    env = UWBCalibrationParallelEnv(config)
     policy = _cached_policy(spec, config.sim.dt_s)  # reset() by rollout; a saved model is read once
+    mode = getattr(policy, "action_mode", None)
+    if mode is not None and mode != config.action_mode:  # same scenario, the actions the policy chooses among
+        config = config.replace(action_mode=mode)
+    env = UWBCalibrationParallelEnv(config)
     if hasattr(policy, "bind"):  # planners on the true state (lookahead) need the env itself
         policy.bind(env)
     result = rollout(env, policy, seed=seed)

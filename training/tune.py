@@ -28,6 +28,8 @@ FAMILIES: dict[str, tuple[tuple[float, ...], bool, tuple[float, float]]] = {
     "fixed": ((5, 8, 12, 18, 27, 40, 60, 90, 135, 200, 300), True, (1, 1000)),
     "threshold": ((0.05, 0.08, 0.12, 0.17, 0.25, 0.35, 0.5, 0.7, 1.0), False, (0.01, 5.0)),
     "residual": ((0.05, 0.08, 0.12, 0.17, 0.25, 0.35, 0.5, 0.7, 1.0), False, (0.01, 5.0)),
+    # per-anchor rounds ("re-locate me") and team rounds: the heuristic for the per-anchor actions
+    "per_anchor_threshold": ((0.05, 0.08, 0.12, 0.17, 0.25, 0.35, 0.5, 0.7, 1.0), False, (0.01, 5.0)),
 }
 
 
