@@ -288,13 +288,7 @@ class PansShellTagDriver:
 
     def _listen(self, seconds: float) -> bool:
         """Read for up to ``seconds``; True as soon as a report arrived."""
-        deadline = time.monotonic() + seconds
-        while True:
-            if self._read():
-                return True
-            if time.monotonic() >= deadline:
-                return False
-            time.sleep(0.01)
+        return _listen(self._read, seconds)
 
 
 class TiersTagDriver:
@@ -350,13 +344,7 @@ class TiersTagDriver:
         raise DeviceTimeout(self.transport.url, "TIERS tag lines after the start byte", self.line_timeout_s)
 
     def _listen(self, seconds: float) -> bool:
-        deadline = time.monotonic() + seconds
-        while True:
-            if self._read():
-                return True
-            if time.monotonic() >= deadline:
-                return False
-            time.sleep(0.01)
+        return _listen(self._read, seconds)
 
     start_lec = ensure_streaming
 
@@ -460,3 +448,14 @@ class PansTlvDriver:
         resp = self.request(tlv.UPD_RATE_SET, tlv.request_upd_rate_set(rate_100ms, stationary_100ms)[2:])
         if not resp.ok:
             raise HardwareError(f"port {self.transport.url!r}: update rate set: error {resp.error}")
+
+
+def _listen(read, seconds: float) -> bool:
+    """Call ``read`` for up to ``seconds``; True as soon as it returns something."""
+    deadline = time.monotonic() + seconds
+    while True:
+        if read():
+            return True
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.01)

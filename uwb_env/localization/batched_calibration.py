@@ -104,7 +104,7 @@ def later_calibrations(pairs: np.ndarray, dist: np.ndarray, var: np.ndarray, pri
     best = score([results[r] for r in poor], idx)
     base = np.stack([results[r].positions for r in poor])
     # every alternative start of every poor team in one batched solve
-    starts = [_mds_starts(pairs, dist[poor])] + [_reflect_anchors(base, k) for k in range(n)]
+    starts = [_mds(pairs, dist[poor])[0]] + [_reflect_anchors(base, k) for k in range(n)]
     reps = len(starts)
     cands = _solve_teams(pairs, np.tile(dist[poor], (reps, 1)), np.tile(var[poor], (reps, 1)),
                          np.concatenate(starts), *args, accept_poor=True)
@@ -115,17 +115,18 @@ def later_calibrations(pairs: np.ndarray, dist: np.ndarray, var: np.ndarray, pri
     return results
 
 
-def _mds_starts(pairs: np.ndarray, dist: np.ndarray) -> np.ndarray | None:
-    """Classical MDS (2D) of complete matrices, (K, n, 2)."""
+def _mds(pairs: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Classical MDS (2D) of complete matrices: starts (K, n, 2) and the two largest
+    eigenvalues of the Gram matrices (K, 2), largest first."""
     k_teams = dist.shape[0]
     n = int(pairs.max()) + 1
     d2 = np.zeros((k_teams, n, n))
     d2[:, pairs[:, 0], pairs[:, 1]] = dist**2
     d2[:, pairs[:, 1], pairs[:, 0]] = dist**2
     centre = np.eye(n) - 1.0 / n
-    values, vectors = np.linalg.eigh(-0.5 * centre @ d2 @ centre)
-    top = np.maximum(values[:, -2:][:, ::-1], 0.0)
-    return vectors[:, :, -2:][:, :, ::-1] * np.sqrt(top)[:, None, :]
+    values, vectors = np.linalg.eigh(-0.5 * centre @ d2 @ centre)  # ascending
+    top = values[:, -2:][:, ::-1]
+    return vectors[:, :, -2:][:, :, ::-1] * np.sqrt(np.maximum(top, 0.0))[:, None, :], top
 
 
 def symmetric_arrays(mean_m: np.ndarray, count: np.ndarray, range_std_m: float):
@@ -162,15 +163,8 @@ def first_calibrations(pairs: np.ndarray, dist: np.ndarray, var: np.ndarray, los
     on further, or anything :func:`calibrate_with_priors` hands back."""
     k_teams = dist.shape[0]
     n = int(pairs.max()) + 1
-    d2 = np.zeros((k_teams, n, n))
-    d2[:, pairs[:, 0], pairs[:, 1]] = dist**2
-    d2[:, pairs[:, 1], pairs[:, 0]] = dist**2
-    centre = np.eye(n) - 1.0 / n
-    gram = -0.5 * centre @ d2 @ centre
-    values, vectors = np.linalg.eigh(gram)  # ascending
-    top = values[:, -2:][:, ::-1]
+    start, top = _mds(pairs, dist)
     ok = (top[:, 1] > 0) & (top[:, 1] >= min_aspect * top[:, 0])
-    start = vectors[:, :, -2:][:, :, ::-1] * np.sqrt(np.maximum(top, 0.0))[:, None, :]
     out: list[BatchedCalibration | None] = [None] * k_teams
     rows = np.flatnonzero(ok)
     if not len(rows):
