@@ -28,6 +28,7 @@ from uwb_env.measurements import RangeMatrix
 from uwb_env.sim.motion import MotionModel
 from uwb_env.sim.odometry import OdometryModel
 from uwb_env.sim.round_cohort import RoundCohort
+from uwb_env.sim.world import formation_xy, tags_inside
 from uwb_env.system import OBS_FIELDS, LocalizationSystem
 
 
@@ -119,15 +120,9 @@ class BatchedSystem:
         self._fix_tags(np.ones(B, dtype=bool), cold=True)
 
     def _initial_positions(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        """World.initial_anchors / initial_tags for every copy in a few array calls (2D)."""
-        sim, B, N, M = self.config.sim, self.B, self.N, self.M
-        size = sim.area_size_m
-        angles = 2 * np.pi * np.arange(N) / N + np.pi / 4 + np.pi
-        radius = 0.5 * size * np.sqrt(2) * 0.8
-        xy = size / 2 + radius * np.column_stack([np.cos(angles), np.sin(angles)])
-        anchors = np.clip(xy + sim.anchor_jitter_fraction * size * rng.uniform(-1, 1, (B, N, 2)), 0.0, size)
-        weights = rng.dirichlet(np.ones(N), (B, M))  # convex combinations: inside the anchors' polygon
-        return anchors, weights @ anchors
+        """The single env's placement (``World``'s formation and tags), for every copy at once."""
+        anchors = formation_xy(self.config.sim, rng, copies=self.B)
+        return anchors, tags_inside(anchors, self.M, rng)
 
     def step(self, requests: np.ndarray) -> dict[str, np.ndarray]:
         """Advance every copy by ``dt_s``; ``requests`` (B,) bool start rounds where none runs."""

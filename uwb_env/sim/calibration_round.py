@@ -64,6 +64,17 @@ class RoundTiming:
         return times, initiator, responder
 
 
+def exchange_ranges(times_s, t0_s, t1_s, anchors_t0, anchors_t1, initiator, responder, range_model, rng):
+    """Measured ranges of the exchanges at ``times_s`` in (t0, t1], the anchors' positions
+    interpolated linearly over the step; ``anchors_t0/t1`` (n, dim), or (copies, n, dim) for
+    a cohort of copies sharing the schedule."""
+    alpha = ((times_s - t0_s) / max(t1_s - t0_s, 1e-12))[:, None]
+    a0i, a0j = anchors_t0[..., initiator, :], anchors_t0[..., responder, :]
+    pi = a0i + alpha * (anchors_t1[..., initiator, :] - a0i)
+    pj = a0j + alpha * (anchors_t1[..., responder, :] - a0j)
+    return range_model.measure(np.linalg.norm(pi - pj, axis=-1), rng)
+
+
 class CalibrationRound:
     """Collects the exchanges of one round as simulated time advances.
 
@@ -110,11 +121,8 @@ class CalibrationRound:
         if stop <= self._next:
             return
         sl = slice(self._next, stop)
-        alpha = ((self.times_s[sl] - t0_s) / max(t1_s - t0_s, 1e-12))[:, None]
-        i, j = self.initiator[sl], self.responder[sl]
-        pi = anchors_t0[i] + alpha * (anchors_t1[i] - anchors_t0[i])
-        pj = anchors_t0[j] + alpha * (anchors_t1[j] - anchors_t0[j])
-        self.ranges_m[sl] = range_model.measure(np.linalg.norm(pi - pj, axis=1), rng)
+        self.ranges_m[sl] = exchange_ranges(self.times_s[sl], t0_s, t1_s, anchors_t0, anchors_t1, self.initiator[sl],
+                                            self.responder[sl], range_model, rng)
         self._next = stop
 
     def result(self) -> RangeMatrix:

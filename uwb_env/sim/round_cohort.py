@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from uwb_env.sim.calibration_round import RoundTiming
+from uwb_env.sim.calibration_round import RoundTiming, exchange_ranges
 from uwb_env.sim.ranging import RangeModel
 
 
@@ -44,11 +44,8 @@ class RoundCohort:
         if stop <= self._next:
             return
         sl = slice(self._next, stop)
-        alpha = ((self.times_s[sl] - t0_s) / max(t1_s - t0_s, 1e-12))[None, :, None]
-        i, j = self.initiator[sl], self.responder[sl]
-        pi = anchors_t0[:, i] + alpha * (anchors_t1[:, i] - anchors_t0[:, i])
-        pj = anchors_t0[:, j] + alpha * (anchors_t1[:, j] - anchors_t0[:, j])
-        self.ranges_m[:, sl] = range_model.measure(np.linalg.norm(pi - pj, axis=2), rng)
+        self.ranges_m[:, sl] = exchange_ranges(self.times_s[sl], t0_s, t1_s, anchors_t0, anchors_t1,
+                                               self.initiator[sl], self.responder[sl], range_model, rng)
         self._next = stop
 
     def pair_statistics(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

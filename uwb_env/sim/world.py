@@ -32,6 +32,26 @@ class RoundRunner:
         return self.finish_calibration_round().result(), steps
 
 
+def formation_xy(config: SimConfig, rng: np.random.Generator, copies: int | None = None) -> np.ndarray:
+    """Initial anchor positions in the plane, (n, 2), or (copies, n, 2) for the batched env (the
+    same draws in the same order for one copy): spread around the area's border (corners first
+    for n = 4), counter-clockwise, with a uniform jitter."""
+    n, size = config.n_anchors, config.area_size_m
+    angles = 2 * np.pi * np.arange(n) / n + np.pi / 4 + np.pi
+    radius = 0.5 * size * np.sqrt(2) * 0.8
+    xy = size / 2 + radius * np.column_stack([np.cos(angles), np.sin(angles)])
+    shape = (n, 2) if copies is None else (copies, n, 2)
+    return np.clip(xy + config.anchor_jitter_fraction * size * rng.uniform(-1, 1, shape), 0.0, size)
+
+
+def tags_inside(anchors_xy: np.ndarray, n_tags: int, rng: np.random.Generator) -> np.ndarray:
+    """Tags as convex combinations of the anchors (inside their polygon, the paper's setup):
+    (n_tags, 2) for (n, 2) anchors, or (copies, n_tags, 2) for (copies, n, 2)."""
+    n = anchors_xy.shape[-2]
+    size = n_tags if anchors_xy.ndim == 2 else (anchors_xy.shape[0], n_tags)
+    return rng.dirichlet(np.ones(n), size) @ anchors_xy
+
+
 class World(RoundRunner):
     """N anchor robots with drifting odometry and M tags in a square area.
 
@@ -144,14 +164,7 @@ class World(RoundRunner):
 
     def initial_anchors(self, rng: np.random.Generator) -> np.ndarray:
         cfg = self.config
-        n, size = cfg.n_anchors, cfg.area_size_m
-        # Spread anchors around the area's border (corners first for n = 4), counter-clockwise.
-        angles = 2 * np.pi * np.arange(n) / n + np.pi / 4 + np.pi
-        radius = 0.5 * size * np.sqrt(2) * 0.8
-        center = np.full(2, size / 2)
-        xy = center + radius * np.column_stack([np.cos(angles), np.sin(angles)])
-        xy = xy + cfg.anchor_jitter_fraction * size * rng.uniform(-1, 1, (n, 2))
-        xy = np.clip(xy, 0.0, size)
+        xy = formation_xy(cfg, rng)
         if cfg.dim == 3:
             # Ranges fix the third coordinate only as far as the anchors leave one plane: a 3D
             # deployment mounts them at clearly different heights. Heights are redrawn until the
@@ -165,10 +178,7 @@ class World(RoundRunner):
         return self._with_height(xy, rng)
 
     def initial_tags(self, anchors: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        cfg = self.config
-        # Convex combinations of the anchors stay inside their polygon (the paper's setup).
-        weights = rng.dirichlet(np.ones(cfg.n_anchors), cfg.n_tags)
-        return self._with_height(weights @ anchors[:, :2], rng)
+        return self._with_height(tags_inside(anchors[:, :2], self.config.n_tags, rng), rng)
 
     def _with_height(self, xy: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         if self.config.dim == 2:
