@@ -121,8 +121,8 @@ class CalibrationRound:
         if stop <= self._next:
             return
         sl = slice(self._next, stop)
-        self.ranges_m[sl] = exchange_ranges(self.times_s[sl], t0_s, t1_s, anchors_t0, anchors_t1, self.initiator[sl],
-                                            self.responder[sl], range_model, rng)
+        self.ranges_m[..., sl] = exchange_ranges(self.times_s[sl], t0_s, t1_s, anchors_t0, anchors_t1,
+                                                 self.initiator[sl], self.responder[sl], range_model, rng)
         self._next = stop
 
     def result(self) -> RangeMatrix:

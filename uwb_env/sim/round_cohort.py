@@ -11,42 +11,20 @@ from __future__ import annotations
 
 import numpy as np
 
-from uwb_env.sim.calibration_round import RoundTiming, exchange_ranges
-from uwb_env.sim.ranging import RangeModel
+from uwb_env.sim.calibration_round import CalibrationRound, RoundTiming
 
 
-class RoundCohort:
-    """Team rounds of the copies ``copies`` (C,), all started at ``start_time_s``."""
+class RoundCohort(CalibrationRound):
+    """Team rounds of the copies ``copies`` (C,), all started at ``start_time_s``: a
+    :class:`CalibrationRound` whose ranges are (C, exchanges); ``advance`` takes (C, N, dim)
+    positions of the cohort's copies."""
 
     def __init__(self, copies: np.ndarray, n_anchors: int, timing: RoundTiming, measurements_per_pair: int,
                  start_time_s: float):
+        super().__init__(n_anchors, timing, measurements_per_pair, start_time_s)
         self.copies = np.asarray(copies, dtype=int)
-        self.n_anchors, self.k = n_anchors, measurements_per_pair
-        offsets, self.initiator, self.responder = timing.schedule(n_anchors, measurements_per_pair)
-        self.times_s = start_time_s + offsets
-        self.start_time_s = start_time_s
-        self.end_time_s = start_time_s + timing.duration_s(n_anchors, measurements_per_pair)
-        self.ranges_m = np.full((len(self.copies), len(offsets)), np.nan)
-        self._next = 0
-
-    @property
-    def done(self) -> bool:
-        return self._next >= len(self.times_s)
-
-    @property
-    def progress(self) -> float:
-        return self._next / len(self.times_s)
-
-    def advance(self, t0_s: float, t1_s: float, anchors_t0: np.ndarray, anchors_t1: np.ndarray,
-                range_model: RangeModel, rng: np.random.Generator) -> None:
-        """The exchanges timed in (t0, t1]; ``anchors_t0/t1`` (C, N, dim) of the cohort's copies."""
-        stop = int(np.searchsorted(self.times_s, t1_s, side="right"))
-        if stop <= self._next:
-            return
-        sl = slice(self._next, stop)
-        self.ranges_m[:, sl] = exchange_ranges(self.times_s[sl], t0_s, t1_s, anchors_t0, anchors_t1,
-                                               self.initiator[sl], self.responder[sl], range_model, rng)
-        self._next = stop
+        self.k = measurements_per_pair
+        self.ranges_m = np.full((len(self.copies), len(self.times_s)), np.nan)
 
     def pair_statistics(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Per copy and ordered pair: raw mean, sample std (ddof 1, 0 for one sample) and count,
