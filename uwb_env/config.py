@@ -343,7 +343,7 @@ class SolverConfig(ConfigBase):
 
     ``gauge`` places later calibrations in the running frame (``anchor0``: the paper's rule,
     anchor 0 keeps its on-board estimate; ``prior``: rigid fit to all anchors' estimates).
-    ``loss`` is the robust loss (``linear``, ``huber``, ``soft_l1``, ``cauchy``) for both.
+    ``loss`` is the robust loss (``linear``, ``huber``, ``soft_l1``, ``cauchy``, ``nlos``) for both.
     """
 
     gauge: str = "prior"
@@ -356,7 +356,7 @@ class SolverConfig(ConfigBase):
 
     def __post_init__(self) -> None:
         self._choice("gauge", ("anchor0", "prior"))
-        self._choice("loss", ("linear", "huber", "soft_l1", "cauchy"))
+        self._choice("loss", ("linear", "huber", "soft_l1", "cauchy", "nlos"))
         self._positive("f_scale_sigmas")
         self._integer("tag_iterations", 1, 100)
         self._positive("tag_restart_residual_m")

@@ -19,7 +19,7 @@ import numpy as np
 from scipy.special import chdtrc
 
 from uwb_env.localization.alignment import paper_frame_2d_batch, rigid_align, rigid_align_batch
-from uwb_env.localization.robust import irls_weights
+from uwb_env.localization.robust import irls_weights, robust_cost
 from uwb_env.measurements import RangeMatrix
 
 
@@ -387,15 +387,4 @@ def _gauss_newton(x, i, j, dist, sqrt_iv, free, loss, f_scale, max_iterations, x
 
 
 def _cost(z, loss, f_scale):
-    if loss == "linear":
-        return 0.5 * (z * z).sum(-1)
-    c2 = f_scale**2
-    s = z * z
-    if loss == "huber":
-        t = s / c2
-        rho = np.where(t <= 1.0, t, 2.0 * np.sqrt(t) - 1.0)
-    elif loss == "soft_l1":
-        rho = 2.0 * (np.sqrt(1.0 + s / c2) - 1.0)
-    else:  # cauchy
-        rho = np.log1p(s / c2)
-    return 0.5 * c2 * rho.sum(-1)
+    return robust_cost(z, loss, f_scale, axis=-1)

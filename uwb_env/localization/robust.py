@@ -7,13 +7,16 @@ weight w(z) = rho'(s) with s = (z / c)^2, matching ``scipy.optimize.least_square
 - ``huber``:   w = 1 if |z| <= c else c / |z|
 - ``soft_l1``: w = 1 / sqrt(1 + s)
 - ``cauchy``:  w = 1 / (1 + s)
+- ``nlos``:    one-sided Cauchy: w = 1 for z >= 0, 1 / (1 + s) for z < 0. Residuals are
+  model - measured; NLOS only ever lengthens a range (z < 0), so a range *shorter* than the
+  model is never down-weighted.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-LOSSES = ("linear", "huber", "soft_l1", "cauchy")
+LOSSES = ("linear", "huber", "soft_l1", "cauchy", "nlos")
 
 
 def check_loss(loss: str) -> None:
@@ -31,20 +34,29 @@ def irls_weights(z: np.ndarray, loss: str, f_scale: float) -> np.ndarray:
         return 1.0 / np.sqrt(1.0 + s)
     if loss == "cauchy":
         return 1.0 / (1.0 + s)
+    if loss == "nlos":
+        return np.where(z < 0, 1.0 / (1.0 + s), 1.0)
     raise ValueError(f"loss={loss!r}: must be one of {LOSSES}")
 
 
-def robust_cost(z: np.ndarray, loss: str, f_scale: float) -> float:
-    """0.5 * sum rho(z^2) in scipy's convention (rho(s) ~ s near 0)."""
+def robust_cost(z: np.ndarray, loss: str, f_scale: float, axis=None):
+    """0.5 * sum rho(z^2) in scipy's convention (rho(s) ~ s near 0): a float, or summed over
+    ``axis`` (e.g. -1 for many problems at once)."""
     c2 = f_scale**2
     s = z * z
     if loss == "linear":
-        return 0.5 * float(s.sum())
+        total = s.sum(axis)
+        return 0.5 * float(total) if axis is None else 0.5 * total
     t = s / c2
     if loss == "huber":
         rho = np.where(t <= 1.0, t, 2.0 * np.sqrt(t) - 1.0)
     elif loss == "soft_l1":
         rho = 2.0 * (np.sqrt(1.0 + t) - 1.0)
-    else:
+    elif loss == "nlos":
+        rho = np.where(z < 0, np.log1p(t), t)
+    elif loss == "cauchy":
         rho = np.log1p(t)
-    return 0.5 * c2 * float(rho.sum())
+    else:
+        raise ValueError(f"loss={loss!r}: must be one of {LOSSES}")
+    total = rho.sum(axis)
+    return 0.5 * c2 * float(total) if axis is None else 0.5 * c2 * total
