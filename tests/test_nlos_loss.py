@@ -67,3 +67,20 @@ def test_nlos_loss_beats_the_symmetric_ones_on_nlos_rounds():
             rot, trans = rigid_align(res.positions, x)
             errors[loss].append(np.sqrt(((res.positions @ rot.T + trans - x) ** 2).sum(1).mean()))
     assert np.median(errors["nlos"]) < np.median(errors["cauchy"])
+
+
+def test_envs_run_with_the_nlos_loss():
+    from uwb_env.agents.baselines import FixedIntervalPolicy
+    from uwb_env.batch import BatchedSystem
+    from uwb_env.config import EnvConfig
+    from uwb_env.env.policy import rollout
+
+    from uwb_env import parallel_env
+
+    result = rollout(parallel_env(max_cycles=40, solver={"loss": "nlos"}), FixedIntervalPolicy(10), seed=3)
+    assert np.isfinite(result.tag_error_m).all()
+    batched = BatchedSystem(EnvConfig.from_dict({"solver": {"loss": "nlos"}}), 8)
+    batched.reset(np.random.default_rng(0))
+    for t in range(25):
+        batched.step(np.full(8, t % 10 == 0))
+    assert np.isfinite(batched.errors_m()[1]).all()

@@ -19,7 +19,7 @@ def _case(rng, n_tags=3, n_anchors=4, missing=0):
     return anchors, previous, ranges, cov
 
 
-@pytest.mark.parametrize("loss", ["linear", "huber", "soft_l1", "cauchy"])
+@pytest.mark.parametrize("loss", ["linear", "huber", "soft_l1", "cauchy", "nlos"])
 @pytest.mark.parametrize("with_cov", [False, True])
 @pytest.mark.parametrize("missing", [0, 3, 6])
 def test_scalar_kernel_matches_the_numpy_kernel(loss, with_cov, missing, rng):

@@ -408,7 +408,7 @@ SMALL_TRACKING_WORK = 48
 
 def _track_small_2d(anchors, previous, ranges_m, range_var_m2, anchor_covariance, loss, f_scale, iterations):
     """:func:`track_tags_2d` for one small group in scalar Python (same maths, same outputs)."""
-    if loss not in ("linear", "huber", "soft_l1", "cauchy"):
+    if loss not in ("linear", "huber", "soft_l1", "cauchy", "nlos"):
         check_loss(loss)
     anchor_xy = anchors.tolist()
     if anchor_covariance is None:
@@ -419,7 +419,7 @@ def _track_small_2d(anchors, previous, ranges_m, range_var_m2, anchor_covariance
         kx, ky = [0.5 * (ci[0] - ci[3]) for ci in c], [ci[1] for ci in c]
     terms = list(zip(anchor_xy, var0, kx, ky, strict=True))
     inv_scale = 1.0 / f_scale
-    robust = ("linear", "huber", "cauchy", "soft_l1").index(loss)  # an int: compared per range below
+    robust = ("linear", "huber", "cauchy", "soft_l1", "nlos").index(loss)  # an int: compared per range below
     positions, rms, residuals = [], [], []
     for (px, py), row in zip(previous.tolist(), ranges_m.tolist(), strict=True):
         for _ in range(iterations):
@@ -436,9 +436,9 @@ def _track_small_2d(anchors, previous, ranges_m, range_var_m2, anchor_covariance
                     z = abs(res) * math.sqrt(w) * inv_scale
                     if robust == 1:  # huber
                         w = w if z <= 1.0 else w / z
-                    elif robust == 2:  # cauchy
+                    elif robust == 2 or (robust == 4 and res < 0):  # cauchy; nlos on a too-long range
                         w = w / (1.0 + z * z)
-                    else:  # soft_l1
+                    elif robust == 3:  # soft_l1
                         w = w / math.sqrt(1.0 + z * z)
                 wx, wy = w * ux, w * uy
                 a11, a12, a22 = a11 + wx * ux, a12 + wx * uy, a22 + wy * uy
