@@ -71,11 +71,11 @@ def test_nlos_loss_beats_the_symmetric_ones_on_nlos_rounds():
 
 def test_envs_run_with_the_nlos_loss():
     from uwb_env.agents.baselines import FixedIntervalPolicy
+
+    from uwb_env import parallel_env
     from uwb_env.batch import BatchedSystem
     from uwb_env.config import EnvConfig
     from uwb_env.env.policy import rollout
-
-    from uwb_env import parallel_env
 
     result = rollout(parallel_env(max_cycles=40, solver={"loss": "nlos"}), FixedIntervalPolicy(10), seed=3)
     assert np.isfinite(result.tag_error_m).all()
