@@ -152,7 +152,9 @@ def run_jobs(jobs: list[tuple], workers: int = 1, label: str = "evaluate", show:
     # learned policy was loaded, or training just ran) can deadlock the children.
     context = multiprocessing.get_context("forkserver")
     with ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
-        it = pool.map(_run_star, jobs, chunksize=max(1, len(jobs) // (8 * workers)))
+        # small chunks: episodes differ 100x in cost (a lookahead planner vs a fixed interval), and
+        # big chunks leave one worker with all the expensive ones and the progress line frozen
+        it = pool.map(_run_star, jobs, chunksize=max(1, min(4, len(jobs) // (8 * workers))))
         return list(progress(it, len(jobs), label, enabled=show))
 
 
