@@ -7,8 +7,13 @@ interpolated at the learned policy's calibration rate (error at matched rate), a
 at its error (rate needed by a fixed interval to match it). Also measures DummyVecEnv vs
 SubprocVecEnv throughput.
 
-Writes benchmarks/results/bench_scheduling.json, docs/results/scheduling/ (table, plots) and
-ships the model in agents/models/ when it is under 5 MB. ``--quick`` ends within a minute.
+Writes benchmarks/results/bench_scheduling.json and the evaluation into ``--out`` and ships
+the model in agents/models/ when it is under 5 MB. ``--quick`` ends within a minute.
+
+Its comparison (24 seeds, means, an untuned curve) is a training check, not a verdict: whether
+a learned scheduler beats the tuned heuristics is measured by ``bench_protocol.py`` (the
+evaluation protocol: >= 100 test seeds, IQM with bootstrap CIs, paired differences, tuned
+baselines), whose results are in docs/results/scheduling/.
 """
 
 from __future__ import annotations
@@ -88,7 +93,7 @@ def main() -> None:
 
     eargs = evaluate.Args(policies=[f"learned:{model}", "fixed:10", "threshold:0.15", "residual:0.2", "oracle:0.3"],
                           seeds=seeds, max_cycles=500, sweep=True, workers=2,
-                          out=str(ROOT / "docs" / "results" / "scheduling") if not a.quick else str(out / "eval"),
+                          out=str(out / "eval"),
                           progress=True)
     results = evaluate.main(eargs)
     rows = {r["policy"]: r for r in results["summary"]}
