@@ -112,13 +112,20 @@ class BatchedSystem:
             results[r] = res
         for k in range(B):
             if results[k] is None:  # thin layouts, missing pairs, poor fits: the full solver's starts
-                results[k] = calibrate_anchors(RangeMatrix(mean[k], std[k], count[k]), dim=2, loss=solver.loss,
-                                               f_scale=solver.f_scale_sigmas, range_std_m=self.range_std_m)
-        positions = np.stack([r.positions for r in results])
+                try:
+                    results[k] = calibrate_anchors(RangeMatrix(mean[k], std[k], count[k]), dim=2, loss=solver.loss,
+                                                   f_scale=solver.f_scale_sigmas, range_std_m=self.range_std_m)
+                except LocalizationError:  # e.g. dropouts disconnected the graph: no shape this round
+                    results[k] = None
+        # A copy without a usable first calibration keeps its starting estimates in the world
+        # frame (calibration_count 0: its features say it was never calibrated).
+        failed = np.array([r is None or r.status == "not_converged" for r in results])
+        positions = np.stack([est_now[k] if failed[k] else r.positions for k, r in enumerate(results)])
         rot, origin = rigid_align_batch(true_mid, positions)  # estimate = truth @ R.T + t, per copy
+        rot[failed], origin[failed] = np.eye(2), 0.0
         self.frame_rot, self.frame_origin = rot, -np.einsum("bji,bj->bi", rot, origin)
         since_mid = np.einsum("bnj,bij->bni", est_now - 0.5 * (est_start + est_now), rot)
-        for k in range(B):
+        for k in np.flatnonzero(~failed):
             self._apply(k, results[k], since_mid[k])
         self._end_cohort(cohort)
         self._fix_tags(np.ones(B, dtype=bool), cold=True)
