@@ -46,7 +46,10 @@ def test_a_slow_anchor_never_gets_a_matrix_credited_to_the_wrong_request():
     # (latched, no abort) still finishes that round and prints its matrix later.
     emu, device, url = _anchor(Faults(round_slowdown=10.0))
     with emu, SerialTransport(url) as transport:
-        transport.read_until(b"INIT\r\n", 1.0)  # the board has booted
+        # pyserial flushes the input buffer on open: a banner printed before that is gone, so
+        # power-cycle the emulated board now that the port is open, and wait for its banner
+        device.reboot()
+        transport.read_until(b"INIT\r\n", 2.0)
         driver = TiersAnchorDriver(transport, round_timeout_s=0.08, drain_quiet_s=5.0)
         credited = failed = 0
         for request in range(20):
@@ -68,7 +71,10 @@ def test_a_slow_anchor_never_gets_a_matrix_credited_to_the_wrong_request():
 def test_back_to_back_rounds_lose_no_start_in_the_flush_window():
     emu, device, url = _anchor()
     with emu, SerialTransport(url) as transport:
-        transport.read_until(b"INIT\r\n", 1.0)  # the board has booted
+        # pyserial flushes the input buffer on open: a banner printed before that is gone, so
+        # power-cycle the emulated board now that the port is open, and wait for its banner
+        device.reboot()
+        transport.read_until(b"INIT\r\n", 2.0)
         driver = TiersAnchorDriver(transport, round_timeout_s=1.0)
         for _ in range(8):
             driver.run_round()  # each S only after 'Waiting for Start order'
