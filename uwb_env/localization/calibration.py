@@ -463,7 +463,10 @@ class _Problem:
         ``max_fraction`` of the pairs dropped.
         """
         start = best
-        for _ in range(int(max_fraction * len(self.pairs))):
+        # One solve per dropped pair: at N = 64 (2,016 pairs) 40 % would be 806 solves, minutes
+        # for one round. Beyond 2N drops (48 at least) the model is wrong (e.g. robots that
+        # moved through a long round), not a few outliers: stop and report the poor fit.
+        for _ in range(min(int(max_fraction * len(self.pairs)), max(48, 2 * self.n))):
             if best.fit_ok or best.dof - 1 < 2:
                 break
             z = np.zeros(len(self.pairs))
