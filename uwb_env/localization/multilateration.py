@@ -311,8 +311,17 @@ def refit_stuck_tags_2d(anchors, ranges_m, positions, rms, threshold_m, range_va
     rhs = rr**2 - (a**2).sum(2)
     w = valid / np.maximum(4.0 * rr**2 * range_var_m2, 1e-12)
     normal = np.einsum("rna,rn,rnb->rab", design, w, design) + 1e-12 * np.eye(3)
+    b = np.einsum("rna,rn->ra", design, w * rhs)[..., None]
     with np.errstate(invalid="ignore"):
-        start = np.linalg.solve(normal, np.einsum("rna,rn->ra", design, w * rhs)[..., None])[:, :2, 0].copy()
+        try:
+            start = np.linalg.solve(normal, b)[:, :2, 0].copy()
+        except np.linalg.LinAlgError:  # one singular system (e.g. ranges of 0 m) must not fail the others
+            start = np.full((len(normal), 2), np.nan)
+            for k in range(len(normal)):
+                try:
+                    start[k] = np.linalg.solve(normal[k], b[k])[:2, 0]
+                except np.linalg.LinAlgError:
+                    pass
     ok_start = (valid.sum(1) >= 3) & np.isfinite(start).all(1)
     start[~ok_start] = 0.0
     cov = None if anchor_covariance is None else anchor_covariance[g]
