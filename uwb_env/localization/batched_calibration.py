@@ -51,19 +51,16 @@ def calibrate_with_priors(matrices: list[RangeMatrix], priors: np.ndarray, range
                           max_iterations: int = 50, fit_alpha: float = 1e-3,
                           restart_sigmas: float = 8.0) -> list[BatchedCalibration | None]:
     """2D later calibrations of K teams; ``priors`` (K, N, 2). See the module docstring."""
-    k_teams = len(matrices)
-    out: list[BatchedCalibration | None] = [None] * k_teams
-    if k_teams == 0:
+    out: list[BatchedCalibration | None] = [None] * len(matrices)
+    if not matrices:
         return out
-    data = [m.complete_symmetric(0.03, range_std_m) for m in matrices]
-    full = [i for i, d in enumerate(data) if d is not None]
-    if not full:
+    complete, pairs, dist, var = symmetric_arrays(np.stack([m.mean_m for m in matrices]),
+                                                  np.stack([m.count for m in matrices]), range_std_m)
+    full = np.flatnonzero(complete)
+    if not len(full):
         return out
-    pairs = data[full[0]][0]
-    dist = np.stack([data[i][1] for i in full])
-    var = np.stack([data[i][2] for i in full])
-    for r, res in zip(full, _solve_teams(pairs, dist, var, priors[full], loss, f_scale, gauge, max_iterations,
-                                         fit_alpha, restart_sigmas), strict=True):
+    for r, res in zip(full, _solve_teams(pairs, dist[full], var[full], priors[full], loss, f_scale, gauge,
+                                         max_iterations, fit_alpha, restart_sigmas), strict=True):
         out[r] = res
     return out
 
