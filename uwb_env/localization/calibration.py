@@ -403,6 +403,16 @@ class _Problem:
         """Single-anchor reflections of a poorly fitting solution: a fold mirrors an anchor (or a
         few) across a line (plane) through others; reflecting it back is one start away."""
         tried = 0
+        misfit = self._anchor_misfit(best)
+        worst = np.argsort(-misfit)[: min(self.n, 16)]
+        if best.dof > 0 and np.isfinite(best.chi2):
+            # Reflecting an anchor back removes (to first order) at most the misfit of its own
+            # pairs; if the worst anchors' misfits together cannot bring the chi-square under
+            # the fit threshold, the misfit is spread over the shape (a wrong model, e.g. robots
+            # that moved through a long round), not a fold: skip the solves (18 of 0.4 s each
+            # for a 3D 64-anchor round).
+            if 2.0 * float(misfit[worst].sum()) < best.chi2 - float(chdtri(best.dof, self.fit_alpha)):
+                return best, tried
         for _ in range(2):  # passes: a second fold can hide behind the first
             improved = False
             for k in np.argsort(-self._anchor_misfit(best))[: min(self.n, 16)]:
@@ -447,6 +457,41 @@ class _Problem:
             return best
         return replace(best, fit_ok=False)
 
+    def _rejection_can_fit(self, best: _Candidate, max_drops: int) -> bool:
+        """Whether dropping at most ``max_drops`` too-long pairs could pass the fit test at all.
+
+        Dropping pair p lowers the chi-square by z_p^2 / (1 - h_p) to first order (h_p: its
+        leverage, the whitened Jacobian row's quadratic form in the covariance; under a robust
+        loss a pair with a large residual already carries almost no weight, and the gain is
+        about z_p^2). If even the largest such gains cannot bring the chi-square under the
+        test's threshold, the misfit is spread over the shape (a wrong model, e.g. robots that moved
+        through a long round), not carried by a few outliers: the greedy drops would only burn
+        one solve each (a 3D 64-anchor first calibration: 40 s) and end in the same poor fit.
+        """
+        if best.dof - max_drops < 1 or not np.isfinite(best.chi2):
+            return True  # small problems: the loop's own checks decide
+        try:
+            cov = best.out.covariance()
+        except GeometryError:
+            return True
+        keep = best.keep
+        pairs = self.pairs[keep]
+        i, j = pairs[:, 0], pairs[:, 1]
+        n, dim = self.n, self.dim
+        sw = np.sqrt(self.inv_var[keep])
+        z = best.out.residuals * sw
+        diff = best.x[i] - best.x[j]
+        # rows whitened with the weights the solve used (robust weights included): the
+        # covariance is the inverse of that information, so 0 <= h_p <= 1
+        u = diff / np.maximum(np.linalg.norm(diff, axis=1), 1e-12)[:, None] * np.sqrt(best.out.weights)[:, None]
+        c = cov.reshape(n, dim, n, dim)
+        block = c[i, :, i, :] + c[j, :, j, :] - c[i, :, j, :] - c[j, :, i, :]  # (P, dim, dim)
+        h = np.einsum("pa,pab,pb->p", u, block, u)
+        gain = z**2 / np.maximum(1.0 - h, 1e-3)
+        gain = np.sort(gain[z < 0])[::-1][:max_drops]  # only too-long pairs are dropped
+        threshold = float(chdtri(best.dof - max_drops, self.fit_alpha))
+        return float(gain.sum()) >= best.chi2 - threshold
+
     def reject_outliers(self, refs, best: _Candidate, tries: int = 1, max_fraction: float = 0.4) -> _Candidate:
         """Drop one pair at a time while the fit fails and the shape stays rigid.
 
@@ -466,7 +511,10 @@ class _Problem:
         # One solve per dropped pair: at N = 64 (2,016 pairs) 40 % would be 806 solves, minutes
         # for one round. Beyond 2N drops (48 at least) the model is wrong (e.g. robots that
         # moved through a long round), not a few outliers: stop and report the poor fit.
-        for _ in range(min(int(max_fraction * len(self.pairs)), max(48, 2 * self.n))):
+        max_drops = min(int(max_fraction * len(self.pairs)), max(48, 2 * self.n))
+        if not self._rejection_can_fit(best, max_drops):
+            return start
+        for _ in range(max_drops):
             if best.fit_ok or best.dof - 1 < 2:
                 break
             z = np.zeros(len(self.pairs))
