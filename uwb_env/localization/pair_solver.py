@@ -1,25 +1,23 @@
 """Levenberg-Marquardt for inter-anchor range problems, built for a few dozen anchors.
 
-A calibration has a handful to a few hundred residuals, so a general solver (scipy's
-``least_squares``) spends its time in Python bookkeeping, not arithmetic. This one keeps the
-number of numpy calls per iteration small and fixed:
+A calibration has a handful to a few thousand residuals, so a general solver (scipy's
+``least_squares``) spends its time in Python bookkeeping, not arithmetic. This one:
 
-- The problem's *structure* (pairs, which coordinates the gauge fixes) is compiled once into
-  index arrays and cached: the env calibrates the same anchors over and over.
-- The normal equations J^T W J and J^T W r are accumulated from per-pair blocks (each pair
-  touches two anchors: four dim x dim blocks and two gradient entries) with one ``bincount``
-  each, so an iteration costs O(pairs), not the O(pairs x coordinates^2) of a dense product
-  (~N^4; at N = 64 that product also spun up BLAS threads that fought over two cores). An
-  extra last coordinate absorbs the gauge-fixed ones (no column selection; its step is zero).
-- The normal equations are solved by LAPACK's Cholesky (``dposv``), whose call overhead is a
-  fraction of ``numpy.linalg.solve``'s.
-- It starts as Gauss-Newton (no damping) and only damps after a step that raised the cost.
-- It stops when the step is below ``xtol_sigma`` of the smallest range std: what is left is
+- compiles the problem's *structure* (pairs, which coordinates the gauge fixes) once into
+  index arrays and caches it: the env calibrates the same anchors over and over;
+- runs the iterations as one compiled loop (``_lm_kernel``, numba): no per-iteration array
+  calls, which were ~90 % of a solve at N = 4;
+- accumulates the normal equations J^T W J and J^T W r from per-pair blocks (each pair touches
+  two anchors: four dim x dim blocks and two gradient entries), so an iteration costs O(pairs),
+  not the O(pairs x coordinates^2) of a dense product (~N^4 at N = 64). An extra last
+  coordinate absorbs the gauge-fixed ones (no column selection; its step is zero);
+- starts as Gauss-Newton (no damping) and only damps after a step that raised the cost;
+- stops when the step is below ``xtol_sigma`` of the smallest range std: what is left is
   orders of magnitude under the noise. That last step is taken without a new evaluation; the
   residuals are updated to first order (their error is about the step squared over a range,
   ~1e-11 m for the default tolerance).
 
-Robust losses run as iteratively reweighted least squares with the weights from ``robust``.
+Robust losses run as iteratively reweighted least squares with the weights of ``robust``.
 """
 
 from __future__ import annotations
@@ -31,8 +29,8 @@ from functools import lru_cache
 import numpy as np
 from scipy.linalg.lapack import dpocon, dposv
 
+from uwb_env.localization._lm_kernel import LOSS_CODES, MESSAGES, lm_pairs
 from uwb_env.localization.errors import GeometryError
-from uwb_env.localization.robust import irls_weights, robust_cost
 
 # Below this reciprocal condition number of J^T W J the free coordinates are not fixed by
 # the ranges (collinear / coplanar anchors, too few pairs for a rigid shape).
@@ -53,8 +51,6 @@ class PairStructure:
             to all coordinates (fixed ones read the extra row and column).
         identity: (F+1, F+1) identity (read-only), the right-hand side that inverts.
         pi, pj: (P,) the pairs' anchors.
-        block_index: (P, 4, dim, dim) flat indices into (F+1, F+1) of each pair's four blocks
-            (ii, jj, ij, ji) of J^T W J; ``grad_index`` (P, 2, dim) of its gradient entries.
     """
 
     n: int
@@ -68,8 +64,6 @@ class PairStructure:
     identity: np.ndarray
     pi: np.ndarray
     pj: np.ndarray
-    block_index: np.ndarray
-    grad_index: np.ndarray
 
 
 def pair_structure(pairs: np.ndarray, n: int, dim: int, free: np.ndarray) -> PairStructure:
@@ -96,43 +90,9 @@ def _structure(n: int, dim: int, pair_bytes: bytes, free_bytes: bytes) -> PairSt
     identity = np.eye(n_free + 1)
     pi, pj = pairs[:, 0].copy(), pairs[:, 1].copy()
     ci, cj = cols[pi], cols[pj]  # (P, dim) columns of each pair's coordinates
-    m = n_free + 1
-    block = np.stack([ci[:, :, None] * m + ci[:, None, :], cj[:, :, None] * m + cj[:, None, :],
-                      ci[:, :, None] * m + cj[:, None, :], cj[:, :, None] * m + ci[:, None, :]], axis=1)
-    grad = np.stack([ci, cj], axis=1)
-    for array in (incidence, column, take, identity, pi, pj, block, grad):
+    for array in (incidence, column, take, identity, pi, pj):
         array.flags.writeable = False  # shared by every solve with this layout
-    return PairStructure(n, dim, n_free, incidence, row0 + ci, row0 + cj, column, take, identity, pi, pj,
-                         block, grad)
-
-
-_BLOCK_SIGNS = np.array([1.0, 1.0, -1.0, -1.0])[None, :, None, None]
-_GRAD_SIGNS = np.array([1.0, -1.0])[None, :, None]
-
-
-def _unit_vectors(structure: PairStructure, x: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Residuals ||x_i - x_j|| - dist (P,) and unit vectors (x_i - x_j) / ||x_i - x_j|| (P, dim)."""
-    diff = x[structure.pi] - x[structure.pj]
-    if structure.dim == 2:
-        d = np.hypot(diff[:, 0], diff[:, 1])
-    else:
-        d = np.sqrt((diff * diff).sum(1))
-    return d - dist, diff / np.maximum(d, 1e-12)[:, None]
-
-
-def _normal_equations(structure: PairStructure, v: np.ndarray, wz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """J^T W J (F+1, F+1) and J^T W z (F+1,) from per-pair blocks; ``v`` = whitened, weighted
-    unit vectors (the Jacobian rows' nonzero part), ``wz`` the matching residuals. The extra
-    coordinate's row and column are reset to the identity's."""
-    m = structure.n_free + 1
-    outer = v[:, None, :, None] * v[:, None, None, :] * _BLOCK_SIGNS
-    a = np.bincount(structure.block_index.ravel(), outer.ravel(), m * m).reshape(m, m)
-    g = np.bincount(structure.grad_index.ravel(), ((v * wz[:, None])[:, None, :] * _GRAD_SIGNS).ravel(), m)
-    a[-1, :] = 0.0
-    a[:, -1] = 0.0
-    a[-1, -1] = 1.0
-    g[-1] = 0.0
-    return a, g
+    return PairStructure(n, dim, n_free, incidence, row0 + ci, row0 + cj, column, take, identity, pi, pj)
 
 
 @dataclass
@@ -223,72 +183,21 @@ def solve_pair_ranges(
             robust losses, whose reweighting converges only linearly.
         ftol: or when the relative cost decrease falls below this.
     """
-    n, dim = structure.n, structure.dim
-    column = structure.column
     if not (isinstance(max_iterations, int | np.integer) and max_iterations >= 1):
         raise ValueError(f"max_iterations={max_iterations!r}: must be an integer >= 1")
     if not (math.isfinite(f_scale) and f_scale > 0):
         raise ValueError(f"f_scale={f_scale!r}: must be a finite number > 0")
-    x = np.array(x0, dtype=float).reshape(n, dim)
+    x0 = np.array(x0, dtype=np.float64).reshape(structure.n, structure.dim)
+    dist = np.ascontiguousarray(dist, dtype=np.float64)
+    inv_var = np.ascontiguousarray(inv_var, dtype=np.float64)
     sqrt_iv = np.sqrt(inv_var)
     linear = loss == "linear"
     if xtol_sigma is None:
         xtol_sigma = 1e-3 if linear else 1e-4
     # floor: steps below ~1e-12 of the scene's size are lost to rounding
     xtol = max(xtol_sigma / float(sqrt_iv.max()), 1e-12 * float(np.abs(dist).max()))
-    xtol2 = xtol * xtol
-    # z is whitened (divided by sigma_p); robust weights scale it further per step
-    r, u = _unit_vectors(structure, x, dist)
-    z = r * sqrt_iv
-    cost = 0.5 * float(z @ z) if linear else robust_cost(z, loss, f_scale)
-    info = None
-    lam, message, converged, it = 0.0, "max_iterations reached", False, 0
-    for it in range(1, max_iterations + 1):
-        if linear:
-            root_w = sqrt_iv
-            wz = z
-        else:
-            rw = np.sqrt(irls_weights(z, loss, f_scale))
-            root_w, wz = sqrt_iv * rw, z * rw
-        a, g = _normal_equations(structure, u * root_w[:, None], wz)
-        while True:
-            if lam:
-                diag = np.diag(a).copy()
-                diag[diag <= 0] = 1.0
-                _, step, status = dposv(a + np.diag(lam * diag), g)
-            else:
-                _, step, status = dposv(a, g)
-            if status == 0:
-                delta = step.take(column).reshape(n, dim)  # the gauge coordinates read step[F] = 0
-                if float(step @ step) <= xtol2:
-                    x -= delta
-                    # residuals to first order (their error is ~ step^2 / range)
-                    z = z - sqrt_iv * ((delta[structure.pi] - delta[structure.pj]) * u).sum(1)
-                    r = z / sqrt_iv
-                    cost = 0.5 * float(z @ z) if linear else robust_cost(z, loss, f_scale)
-                    message, converged = "converged", True
-                    if linear:
-                        info = a  # J^T W J barely moves over a sub-xtol step
-                    break
-                trial = x - delta
-                r_new, u_new = _unit_vectors(structure, trial, dist)
-                z_new = r_new * sqrt_iv
-                cost_new = 0.5 * float(z_new @ z_new) if linear else robust_cost(z_new, loss, f_scale)
-                if cost_new <= cost:  # False for NaN
-                    break
-            lam = max(lam * 10.0, 1e-6)
-            if lam > 1e12:
-                message = "no decrease possible" if status == 0 else "singular normal equations"
-                break
-        if message != "max_iterations reached":
-            break
-        small_gain = cost - cost_new <= ftol * max(cost, 1e-300)
-        x, r, z, u, cost = trial, r_new, z_new, u_new, cost_new
-        lam = lam / 10.0 if lam > 1e-6 else 0.0
-        if small_gain:
-            message, converged = "converged", True
-            break
-    robust_w = np.ones_like(z) if linear else irls_weights(z, loss, f_scale)
-    if info is None:
-        info, _ = _normal_equations(structure, u * (sqrt_iv * np.sqrt(robust_w))[:, None], z)
-    return PairSolution(x, info, r, inv_var * robust_w, cost, it, converged, message, structure)
+    x, info, r, robust_w, cost, it, status = lm_pairs(
+        x0, structure.pi, structure.pj, structure.column, structure.n_free, dist, sqrt_iv, LOSS_CODES[loss],
+        float(f_scale), int(max_iterations), xtol * xtol, float(ftol))
+    return PairSolution(x, info, r, inv_var * robust_w, float(cost), int(it), status == 1, MESSAGES[status],
+                        structure)
