@@ -14,6 +14,7 @@ Two figures:
     python benchmarks/bench_episodes.py                 # 500 episodes per interval, 1,000 seeds
     python benchmarks/bench_episodes.py --quick         # a smoke run
     python benchmarks/bench_episodes.py --before af25bf1
+    python benchmarks/bench_episodes.py --only-never-raises   # the sweep alone, merged into the JSON
 
 Writes ``benchmarks/results/bench_episodes.json`` (``_quick`` with --quick).
 """
@@ -74,6 +75,7 @@ def catastrophic(n: int, overrides: dict, workers: int) -> dict:
 def _survive(seed: int) -> tuple[str, dict]:
     from uwb_env import parallel_env
 
+    start = time.perf_counter()
     rng = np.random.default_rng(seed)
     dim = int(rng.choice([2, 3]))
     n = int(rng.choice([3, 4, 5, 8, 16, 32, 64])) if dim == 2 else int(rng.choice([4, 5, 8, 16, 32, 64]))
@@ -87,8 +89,8 @@ def _survive(seed: int) -> tuple[str, dict]:
             env.step({a: int(t % 10 == 0) for a in env.agents})
             t += 1
     except Exception as err:  # counted by type: the figure is that there are none
-        return f"{type(err).__name__}: {str(err)[:120]}", case
-    return "", case
+        return f"{type(err).__name__}: {str(err)[:120]}", {**case, "seconds": time.perf_counter() - start}
+    return "", {**case, "seconds": time.perf_counter() - start}
 
 
 def never_raises(n_seeds: int, workers: int) -> dict:
@@ -96,7 +98,38 @@ def never_raises(n_seeds: int, workers: int) -> dict:
         outcomes = list(pool.map(_survive, range(n_seeds), chunksize=4))
     errors = Counter(msg.split(":")[0] for msg, _ in outcomes if msg)
     examples = [{"error": msg, **case} for msg, case in outcomes if msg][:5]
-    return {"seeds": n_seeds, "exceptions": sum(errors.values()), "by_type": dict(errors), "examples": examples}
+    slowest = max(outcomes, key=lambda o: o[1]["seconds"])[1]
+    return {"seeds": n_seeds, "exceptions": sum(errors.values()), "by_type": dict(errors), "examples": examples,
+            "slowest": slowest}
+
+
+def code_version() -> str:
+    root = Path(__file__).resolve().parents[1]
+    out = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+    return out.stdout.strip() or "unknown"
+
+
+def only_never_raises(seeds: int, workers: int) -> None:
+    """Re-run the sweep alone and update its keys in the committed JSON (the catastrophic
+    figures keep the revision they were measured on, ``code_version``)."""
+    t0 = time.perf_counter()
+    sweep = never_raises(seeds, workers)
+    path = Path(__file__).resolve().parent / "results" / "bench_episodes.json"
+    results = json.loads(path.read_text()) if path.exists() else {}
+    for key in ("date", "machine", "quick", "never_raises_status"):
+        results.pop(key, None)
+    results.update({
+        "never_raises_seeds": seeds,
+        "never_raises_exceptions": sweep["exceptions"],
+        "never_raises_by_type": json.dumps(sweep["by_type"]),
+        "never_raises_examples": json.dumps(sweep["examples"]),
+        "never_raises_slowest_episode": json.dumps(sweep["slowest"]),
+        "never_raises_code_version": code_version(),
+        "never_raises_wall_s": round(time.perf_counter() - t0, 1),
+    })
+    print(f"never raises: {sweep['exceptions']} exceptions over {seeds} seeds {sweep['by_type'] or ''}; "
+          f"slowest episode {sweep['slowest']}")
+    write_results("bench_episodes", results, False)
 
 
 def before(rev: str, n: int, workers: int) -> dict:
@@ -125,7 +158,12 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=None, help="seeds of the never-raises sweep (1000; quick 40)")
     parser.add_argument("--before", default=None, help="git revision to measure side by side (e.g. af25bf1)")
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--only-never-raises", action="store_true",
+                        help="run the never-raises sweep alone; update its keys in the committed JSON")
     args = parser.parse_args()
+    if args.only_never_raises:
+        only_never_raises(args.seeds or 1000, args.workers)
+        return
     n = args.episodes or (40 if args.quick else 500)
     seeds = args.seeds or (40 if args.quick else 1000)
     t0 = time.perf_counter()
@@ -140,6 +178,8 @@ def main() -> None:
         "never_raises_exceptions": sweep["exceptions"],
         "never_raises_by_type": json.dumps(sweep["by_type"]),
         "never_raises_examples": json.dumps(sweep["examples"]),
+        "never_raises_slowest_episode": json.dumps(sweep["slowest"]),
+        "code_version": code_version(),
     }
     print(f"{'interval':>8} {'default rate':>13} {'95% CI':>15} {'median m':>9} {'free-motion rate':>17}"
           + (f" {'before (' + args.before + ')':>16}" if old else ""))
