@@ -232,6 +232,9 @@ def calibrate_anchors(
         candidates = problem.solve_starts(refs, starts)
         if not candidates:
             raise GeometryError("no start fixes the frame: anchors collinear (coplanar in 3D)")
+        if dim == 2 and starts[0][0] == "mds+lift" and not any(c.out.converged for c in candidates):
+            # the lifted start crawled back towards the line: the ranges see collinear anchors
+            raise GeometryError("anchors are collinear within the noise: the y axis is undefined")
     else:
         refs = _gauge_refs(prior)
         candidates = [problem.solve(refs, prior, "prior")]
@@ -688,11 +691,13 @@ def _cold_starts(problem: _Problem, initializer: str) -> list[tuple[str, np.ndar
         except GeometryError:
             if name == initializer:
                 raise
-    if not starts and dim == 3:
-        # Anchors on robots of similar height: noise can leave the ranges no 3D embedding, and
-        # both starts come out flat. A flat start is a saddle of the cost (zero gradient in z),
-        # so lift it off the plane along MDS's third axis and let least squares find the heights.
-        starts.append(("mds+lift", _lifted_mds(full)))
+    if not starts:
+        # Anchors on robots of similar height (3D), or spread along a corridor (2D): noise can
+        # leave the ranges no embedding in the full dimension, and both starts come out flat. A
+        # flat start is a saddle of the cost (zero gradient off the line / plane), so lift it
+        # along MDS's next axis and let least squares find the offsets (or report the geometry
+        # degenerate if the ranges cannot).
+        starts.append(("mds+lift", _lifted_mds(full, dim)))
     return starts
 
 
@@ -708,17 +713,18 @@ def _random_smacof_starts(problem: _Problem, count: int) -> list[tuple[str, np.n
                                      problem.inv_var, problem.pairs)) for _ in range(count)]
 
 
-def _lifted_mds(full: np.ndarray) -> np.ndarray:
+def _lifted_mds(full: np.ndarray, dim: int = 3) -> np.ndarray:
     filled = _shortest_path_filled(full)
     n = filled.shape[0]
     centering = np.eye(n) - 1.0 / n
     vals, vecs = np.linalg.eigh(-0.5 * centering @ (filled**2) @ centering)
-    # the constant vector is in the centred Gram's null space: with a negative third eigenvalue it
-    # would outrank the real third axis and lift nothing
+    # the constant vector is in the centred Gram's null space: with a negative last eigenvalue it
+    # would outrank the real last axis and lift nothing
     real_axes = np.abs(vecs.sum(0)) < 0.5 * np.sqrt(n)
-    order = [k for k in np.argsort(vals)[::-1] if real_axes[k]][:3]
+    order = [k for k in np.argsort(vals)[::-1] if real_axes[k]][:dim]
     scale = np.sqrt(np.maximum(vals[order], 0.0))
-    scale[2] = max(scale[2], 0.05 * scale[0])  # a definite lift: 5 % of the largest extent
+    for axis in range(1, dim):  # a definite lift: 5 % of the largest extent
+        scale[axis] = max(scale[axis], 0.05 * scale[0])
     return vecs[:, order] * scale
 
 
