@@ -112,7 +112,7 @@ def code_version() -> str:
 def only_never_raises(seeds: int, workers: int) -> None:
     """Re-run the sweep alone and update its keys in the committed JSON (the catastrophic
     figures keep the revision they were measured on, ``code_version``)."""
-    t0 = time.perf_counter()
+    t0, version = time.perf_counter(), code_version()  # the code the workers import
     sweep = never_raises(seeds, workers)
     path = Path(__file__).resolve().parent / "results" / "bench_episodes.json"
     results = json.loads(path.read_text()) if path.exists() else {}
@@ -124,7 +124,7 @@ def only_never_raises(seeds: int, workers: int) -> None:
         "never_raises_by_type": json.dumps(sweep["by_type"]),
         "never_raises_examples": json.dumps(sweep["examples"]),
         "never_raises_slowest_episode": json.dumps(sweep["slowest"]),
-        "never_raises_code_version": code_version(),
+        "never_raises_code_version": version,
         "never_raises_wall_s": round(time.perf_counter() - t0, 1),
     })
     print(f"never raises: {sweep['exceptions']} exceptions over {seeds} seeds {sweep['by_type'] or ''}; "
@@ -166,7 +166,7 @@ def main() -> None:
         return
     n = args.episodes or (40 if args.quick else 500)
     seeds = args.seeds or (40 if args.quick else 1000)
-    t0 = time.perf_counter()
+    t0, version = time.perf_counter(), code_version()
     default = catastrophic(n, {}, args.workers)
     free = catastrophic(max(n // 5, 20), FREE_MOTION, args.workers)
     old = before(args.before, max(n // 2, 20), args.workers) if args.before else None
@@ -179,7 +179,7 @@ def main() -> None:
         "never_raises_by_type": json.dumps(sweep["by_type"]),
         "never_raises_examples": json.dumps(sweep["examples"]),
         "never_raises_slowest_episode": json.dumps(sweep["slowest"]),
-        "code_version": code_version(),
+        "code_version": version,
     }
     print(f"{'interval':>8} {'default rate':>13} {'95% CI':>15} {'median m':>9} {'free-motion rate':>17}"
           + (f" {'before (' + args.before + ')':>16}" if old else ""))
