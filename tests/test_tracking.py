@@ -1,9 +1,12 @@
-"""The planar tag tracker: the numpy kernel (many groups) and the scalar one (one small group)."""
+"""The planar tag tracker (one compiled kernel for one env and for many copies), checked
+against an independent numpy formulation of the same Gauss-Newton maths (points as complex
+numbers: A z = (W z + S conj(z)) / 2 with W = sum w, S = sum w u^2)."""
 
 import numpy as np
 import pytest
 
-from uwb_env.localization.multilateration import SMALL_TRACKING_WORK, _track_small_2d, track_tags_2d
+from uwb_env.localization.multilateration import track_tags_2d
+from uwb_env.localization.robust import irls_weights
 
 
 def _case(rng, n_tags=3, n_anchors=4, missing=0):
@@ -19,36 +22,60 @@ def _case(rng, n_tags=3, n_anchors=4, missing=0):
     return anchors, previous, ranges, cov
 
 
+def _reference(anchors, previous, ranges, var, cov, loss, f_scale, iterations):
+    """One group, numpy, complex-number algebra (a formulation independent of the kernel's)."""
+    a = anchors[:, 0] + 1j * anchors[:, 1]
+    p = previous[:, 0] + 1j * previous[:, 1]
+    valid = np.isfinite(ranges)
+    r = np.where(valid, ranges, 0.0)
+    for _ in range(iterations):
+        d = p[:, None] - a[None]
+        dist = np.maximum(np.abs(d), 1e-12)
+        u = d / dist
+        res = dist - r
+        extra = 0.0 if cov is None else (0.5 * (cov[:, 0, 0] + cov[:, 1, 1])
+                                         + ((u * u) * (0.5 * (cov[:, 0, 0] - cov[:, 1, 1]) - 1j * cov[:, 0, 1])).real)
+        iv = valid / (var + extra)
+        w = iv if loss == "linear" else iv * irls_weights(res * np.sqrt(iv), loss, f_scale)
+        tw, s2, g = w.sum(1), (w * u * u).sum(1), (w * res * u).sum(1)
+        det = tw * tw - np.abs(s2) ** 2
+        p = p - (tw * g - s2 * g.conj()) * 2.0 / np.where(det > 1e-300, det, np.inf)
+    res = np.where(valid, np.abs(p[:, None] - a[None]) - r, np.nan)
+    count = valid.sum(1)
+    rms = np.sqrt(np.nansum(res * res, 1) / np.maximum(count, 1))
+    pos = np.stack([p.real, p.imag], -1)
+    bad = (count < 3) | ~np.isfinite(rms)
+    pos[bad], rms[bad], res[bad] = np.nan, np.nan, np.nan
+    return pos, rms, res
+
+
 @pytest.mark.parametrize("loss", ["linear", "huber", "soft_l1", "cauchy", "nlos"])
 @pytest.mark.parametrize("with_cov", [False, True])
 @pytest.mark.parametrize("missing", [0, 3, 6])
-def test_scalar_kernel_matches_the_numpy_kernel(loss, with_cov, missing, rng):
-    anchors, previous, ranges, cov = _case(rng, missing=missing)
-    cov_arg = cov if with_cov else None
-    small = _track_small_2d(anchors, previous, ranges, 0.0036, cov_arg, loss, 3.0, 2)
-    # two identical groups take the numpy path
-    two = track_tags_2d(np.stack([anchors] * 2), np.stack([previous] * 2), np.stack([ranges] * 2), 0.0036,
-                        None if cov_arg is None else np.stack([cov] * 2), loss, 3.0, 2)
-    for got, want in zip(small, two, strict=True):
-        np.testing.assert_allclose(got[0], want[0], rtol=1e-9, atol=1e-12, equal_nan=True)
-    # a tag left with fewer than 3 ranges has no fix
-    few = np.isfinite(ranges).sum(1) < 3
-    assert np.isnan(small[0][0][few]).all() and np.isfinite(small[0][0][~few]).all()
+def test_kernel_matches_the_reference_for_one_and_many_groups(loss, with_cov, missing, rng):
+    groups = [_case(rng, missing=missing) for _ in range(3)]
+    var = np.array([0.0036, 0.0025, 0.01])
+    stack = [np.stack([g[i] for g in groups]) for i in range(4)]
+    cov_arg = stack[3] if with_cov else None
+    many = track_tags_2d(stack[0], stack[1], stack[2], var, cov_arg, loss, 3.0, 2)
+    for k, (anchors, previous, ranges, cov) in enumerate(groups):
+        want = _reference(anchors, previous, ranges, var[k], cov if with_cov else None, loss, 3.0, 2)
+        one = track_tags_2d(anchors[None], previous[None], ranges[None], var[k], cov[None] if with_cov else None,
+                            loss, 3.0, 2)
+        for got_one, got_many, w in zip(one, many, want, strict=True):
+            np.testing.assert_allclose(got_one[0], w, rtol=1e-9, atol=1e-12, equal_nan=True)
+            np.testing.assert_allclose(got_many[k], w, rtol=1e-9, atol=1e-12, equal_nan=True)
+        # a tag left with fewer than 3 ranges has no fix
+        few = np.isfinite(ranges).sum(1) < 3
+        assert np.isnan(one[0][0][few]).all() and np.isfinite(one[0][0][~few]).all()
 
 
-def test_dispatch_uses_the_scalar_kernel_for_one_small_group_only(rng, monkeypatch):
-    import uwb_env.localization.multilateration as mod
-
-    calls = []
-    real = mod._track_small_2d
-    monkeypatch.setattr(mod, "_track_small_2d", lambda *a: calls.append(1) or real(*a))
+def test_a_tag_without_a_fix_stays_without_one(rng):
     anchors, previous, ranges, _ = _case(rng)
-    mod.track_tags_2d(anchors[None], previous[None], ranges[None], 0.0036, iterations=2)
-    assert calls == [1]
-    big_tags = SMALL_TRACKING_WORK // 4 + 1  # 4 anchors, 1 iteration: just over the limit
-    anchors, previous, ranges, _ = _case(rng, n_tags=big_tags)
-    mod.track_tags_2d(anchors[None], previous[None], ranges[None], 0.0036, iterations=1)
-    assert calls == [1]
+    previous[1] = np.nan
+    pos, rms, res = track_tags_2d(anchors[None], previous[None], ranges[None], 0.0036)
+    assert np.isnan(pos[0, 1]).all() and np.isnan(rms[0, 1]) and np.isnan(res[0, 1]).all()
+    assert np.isfinite(pos[0, [0, 2]]).all()
 
 
 def test_tracking_converges_on_moving_tags(rng):

@@ -15,11 +15,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from uwb_env.localization._lm_kernel import LOSS_CODES
+from uwb_env.localization._tracking_kernel import track_2d
 from uwb_env.localization.errors import InvalidPositionError, InvalidRangeError
 from uwb_env.localization.robust import check_loss, irls_weights
 
 OK, TOO_FEW_RANGES, DEGENERATE, NOT_CONVERGED = 0, 1, 2, 3
-_sum = np.add.reduce  # skips ndarray.sum's Python wrapper: the tracking kernel reduces tiny arrays
 STATUS_NAMES = {OK: "ok", TOO_FEW_RANGES: "too_few_ranges", DEGENERATE: "degenerate", NOT_CONVERGED: "not_converged"}
 
 
@@ -339,18 +340,17 @@ def track_tags_2d(anchors, previous, ranges_m, range_var_m2, anchor_covariance=N
     """Warm-started planar Gauss-Newton for tracking: many groups of tags, each group against
     its own anchors, in a few numpy calls per iteration (the environments' hot path).
 
-    Points are complex numbers x + iy, which turns the 2x2 algebra into a handful of array
-    calls: with unit vectors u (|u| = 1) and weights w, the normal matrix A = sum w u u^T acts
-    as A z = (W z + S conj(z)) / 2 with W = sum w and S = sum w u^2, so its inverse is
-    A^-1 g = 2 (W g - S conj(g)) / (W^2 - |S|^2) (the denominator is 4 det A). Likewise an
-    anchor covariance C adds u^T C u = tr(C)/2 + Re(u^2 conj(k)), k = (c00 - c11)/2 + i c01,
-    to a range's variance.
+    One compiled loop (``_tracking_kernel``) for one env's tags and for thousands of copies:
+    per tag and iteration the 2x2 normal equations A = sum w u u^T, g = sum w u r (unit vectors
+    u, residuals r, weights w = 1 / (sigma^2 + u^T C u) times the robust loss's) are summed over
+    the anchors and solved in closed form. An anchor covariance C adds
+    u^T C u = tr(C)/2 + (c00 - c11)/2 (ux^2 - uy^2) + 2 c01 ux uy to a range's variance.
 
     Args:
         anchors: (S, N, 2) anchor positions per group.
         previous: (S, M, 2) previous fixes (finite), the starting points.
         ranges_m: (S, M, N) ranges; NaN = missing.
-        range_var_m2: scalar variance of one range.
+        range_var_m2: variance of one range: a scalar, or one per group ((S,) or (S, 1, 1)).
         anchor_covariance: optional (S, N, 2, 2), folded into each range's variance.
         loss, f_scale, iterations: robust loss (see ``robust``), its scale in sigmas, GN steps.
 
@@ -358,115 +358,19 @@ def track_tags_2d(anchors, previous, ranges_m, range_var_m2, anchor_covariance=N
         (positions (S, M, 2), rms residual (S, M), residuals (S, M, N) fitted minus measured);
         NaN where fewer than 3 ranges, not finite, or (residuals) the range is missing.
     """
-    if anchors.shape[0] == 1 and ranges_m.shape[1] * ranges_m.shape[2] * iterations <= SMALL_TRACKING_WORK:
-        return _track_small_2d(anchors[0], previous[0], ranges_m[0], range_var_m2,
-                               None if anchor_covariance is None else anchor_covariance[0], loss, f_scale, iterations)
-    # (..., 2) float -> (...) complex: a view when contiguous, no copy
-    a = np.ascontiguousarray(anchors, dtype=float).view(np.complex128)[..., 0][:, None, :]
-    p = np.ascontiguousarray(previous, dtype=float).view(np.complex128)[..., 0]
-    valid = np.isfinite(ranges_m)
-    complete = bool(valid.all())
-    r = ranges_m if complete else np.where(valid, ranges_m, 0.0)
-    if anchor_covariance is None:
-        iv = np.full(ranges_m.shape, 1.0 / range_var_m2) if complete else valid / range_var_m2
-    else:
-        c00, c01, c11 = anchor_covariance[..., 0, 0], anchor_covariance[..., 0, 1], anchor_covariance[..., 1, 1]
-        var0 = range_var_m2 + 0.5 * (c00 + c11)[:, None, :]  # range_var_m2: scalar or (S, 1, 1)
-        k_conj = (0.5 * (c00 - c11) - 1j * c01)[:, None, :]
-    linear = loss == "linear"
-    for _ in range(iterations):
-        d = p[..., None] - a
-        dist = np.maximum(np.abs(d), 1e-12)
-        with np.errstate(invalid="ignore"):  # a tag without a fix (NaN) stays NaN
-            u = d / dist
-        res = dist - r
-        u2 = u * u
-        if anchor_covariance is not None:  # 1 / (sigma^2 + u^T C u)
-            iv = 1.0 / (var0 + (u2 * k_conj).real)
-            if not complete:
-                iv = iv * valid
-        w = iv if linear else iv * irls_weights(res * np.sqrt(iv), loss, f_scale)
-        total_w, s2, g = _sum(w, -1), _sum(w * u2, -1), _sum((w * res) * u, -1)
-        det = total_w * total_w - (s2 * s2.conj()).real
-        # tags without 3 ranges (or on a line of anchors) keep their position: det -> inf
-        p = p - (total_w * g - s2 * g.conj()) * (2.0 / np.where(det > 1e-300, det, np.inf))
-    res = np.abs(p[..., None] - a) - r
-    n_anchors = ranges_m.shape[-1]
-    if complete:
-        rms = np.sqrt(_sum(res * res, -1) * (1.0 / n_anchors))
-        enough = None if n_anchors >= 3 else np.zeros(p.shape, bool)
-    else:
-        res = np.where(valid, res, np.nan)
-        count = valid.sum(-1)
-        rms = np.sqrt(np.where(valid, res * res, 0.0).sum(-1) / np.maximum(count, 1))
-        enough = count >= 3
-    pos = p.view(np.float64).reshape(p.shape + (2,))  # p is a fresh array: the view is ours
-    # a non-finite fix has a non-finite rms
-    if enough is not None or not math.isfinite(_sum(rms, None)):
-        bad = ~np.isfinite(rms) if enough is None else ~enough | ~np.isfinite(rms)
-        pos[bad] = np.nan
-        rms[bad] = np.nan
-        res[bad] = np.nan
-    return pos, rms, res
-
-
-# One env's tags (3 tags x 4 anchors x 2 iterations = 24) take a third of the numpy kernel's
-# time in plain Python floats; numpy wins from a few dozen tag-anchor-iteration triples on.
-SMALL_TRACKING_WORK = 48
-
-
-def _track_small_2d(anchors, previous, ranges_m, range_var_m2, anchor_covariance, loss, f_scale, iterations):
-    """:func:`track_tags_2d` for one small group in scalar Python (same maths, same outputs)."""
-    if loss not in ("linear", "huber", "soft_l1", "cauchy", "nlos"):
+    ranges_m = np.ascontiguousarray(ranges_m, dtype=np.float64)
+    s = ranges_m.shape[0]
+    anchors = np.ascontiguousarray(anchors, dtype=np.float64)
+    previous = np.ascontiguousarray(previous, dtype=np.float64)
+    var = np.ascontiguousarray(np.broadcast_to(np.asarray(range_var_m2, dtype=np.float64).reshape(-1), (s,)))
+    use_cov = anchor_covariance is not None
+    cov = np.ascontiguousarray(anchor_covariance, dtype=np.float64) if use_cov else _NO_COVARIANCE
+    if loss not in LOSS_CODES:
         check_loss(loss)
-    anchor_xy = anchors.tolist()
-    if anchor_covariance is None:
-        var0, kx, ky = [range_var_m2] * len(anchor_xy), [0.0] * len(anchor_xy), [0.0] * len(anchor_xy)
-    else:
-        c = anchor_covariance.reshape(len(anchor_xy), 4).tolist()
-        var0 = [range_var_m2 + 0.5 * (ci[0] + ci[3]) for ci in c]
-        kx, ky = [0.5 * (ci[0] - ci[3]) for ci in c], [ci[1] for ci in c]
-    terms = list(zip(anchor_xy, var0, kx, ky, strict=True))
-    inv_scale = 1.0 / f_scale
-    robust = ("linear", "huber", "cauchy", "soft_l1", "nlos").index(loss)  # an int: compared per range below
-    positions, rms, residuals = [], [], []
-    for (px, py), row in zip(previous.tolist(), ranges_m.tolist(), strict=True):
-        for _ in range(iterations):
-            a11 = a12 = a22 = gx = gy = 0.0
-            for ((ax, ay), v0, cx, cy), r in zip(terms, row, strict=True):
-                if r != r:  # NaN: missing range
-                    continue
-                dx, dy = px - ax, py - ay
-                dist = math.hypot(dx, dy) or 1e-12  # a tag exactly on an anchor: any direction
-                ux, uy = dx / dist, dy / dist
-                res = dist - r
-                w = 1.0 / (v0 + cx * (ux * ux - uy * uy) + 2.0 * cy * ux * uy)  # 1 / (sigma^2 + u^T C u)
-                if robust:
-                    z = abs(res) * math.sqrt(w) * inv_scale
-                    if robust == 1:  # huber
-                        w = w if z <= 1.0 else w / z
-                    elif robust == 2 or (robust == 4 and res < 0):  # cauchy; nlos on a too-long range
-                        w = w / (1.0 + z * z)
-                    elif robust == 3:  # soft_l1
-                        w = w / math.sqrt(1.0 + z * z)
-                wx, wy = w * ux, w * uy
-                a11, a12, a22 = a11 + wx * ux, a12 + wx * uy, a22 + wy * uy
-                gx, gy = gx + wx * res, gy + wy * res
-            det = a11 * a22 - a12 * a12
-            if det > 1e-300:  # otherwise (no two independent directions) the tag keeps its place
-                px, py = px - (a22 * gx - a12 * gy) / det, py - (a11 * gy - a12 * gx) / det
-        res_row = [math.hypot(px - ax, py - ay) - r for (ax, ay), r in zip(anchor_xy, row, strict=True)]
-        seen = [e for e in res_row if e == e]
-        err = math.sqrt(sum(e * e for e in seen) / len(seen)) if seen else math.nan
-        if len(seen) < 3 or not math.isfinite(err):
-            px = py = err = math.nan
-            res_row = [math.nan] * len(row)
-        positions.append((px, py))
-        rms.append(err)
-        residuals.append(res_row)
-    m, n = ranges_m.shape
-    return (np.array(positions, dtype=float).reshape(1, m, 2), np.array(rms, dtype=float).reshape(1, m),
-            np.array(residuals, dtype=float).reshape(1, m, n))
+    return track_2d(anchors, previous, ranges_m, var, cov, use_cov, LOSS_CODES[loss], float(f_scale), int(iterations))
+
+
+_NO_COVARIANCE = np.zeros((0, 0, 2, 2))
 
 
 # Per-tag verdicts of the tracker (``check_mirror_2d``).
