@@ -231,3 +231,62 @@ def lm_pairs(x0, pi, pj, column, n_free, dist, sqrt_iv, code, c, max_iterations,
         _normal_equations(u, z, sqrt_iv, pi, pj, column, code, c, a_mat, g)
     residuals = z / sqrt_iv
     return x, a_mat, residuals, weights, cost, it, status
+
+
+@njit(cache=True)
+def gauss_newton_teams(x0, pi, pj, dist, sqrt_iv, column, n_free, code, c, max_iterations, xtol_sigma, ok):
+    """Undamped Gauss-Newton (IRLS for robust losses) for many teams with the same pairs and
+    gauge (``batched_calibration``): x0 (K, n, dim), dist / sqrt_iv (K, P), ok (K,) teams to
+    solve. A team whose step raises the cost (where the full solver would damp), whose normal
+    equations are singular, or that does not converge within the budget comes back not ok.
+    Returns (x, ok)."""
+    k_teams, n, dim = x0.shape
+    npairs = len(pi)
+    m = n_free + 1
+    x = x0.copy()
+    ok = ok.copy()
+    trial = np.empty((n, dim))
+    z = np.empty(npairs)
+    u = np.empty((npairs, dim))
+    z_new = np.empty(npairs)
+    u_new = np.empty((npairs, dim))
+    a_mat = np.empty((m, m))
+    low = np.zeros((m, m))
+    g = np.empty(m)
+    step = np.empty(m)
+    for k in range(k_teams):
+        if not ok[k]:
+            continue
+        xk = x[k]
+        xtol = xtol_sigma / np.max(sqrt_iv[k])
+        _evaluate(xk, pi, pj, dist[k], sqrt_iv[k], z, u)
+        done = False
+        for _ in range(max_iterations):
+            _normal_equations(u, z, sqrt_iv[k], pi, pj, column, code, c, a_mat, g)
+            if not _cholesky_solve(a_mat, g, low, step):
+                ok[k] = False
+                done = True
+                break
+            norm2 = 0.0
+            for r in range(m):
+                norm2 += step[r] * step[r]
+            for q in range(n):
+                for a in range(dim):
+                    trial[q, a] = xk[q, a] - step[column[q * dim + a]]
+            _evaluate(trial, pi, pj, dist[k], sqrt_iv[k], z_new, u_new)
+            cost_old = _cost(z, code, c)
+            cost_new = _cost(z_new, code, c)
+            small = math.sqrt(norm2) <= xtol
+            worse = cost_new > cost_old * (1 + 1e-12) + 1e-300
+            if not worse:
+                xk[:, :] = trial
+                z[:] = z_new
+                u[:, :] = u_new
+            elif not small:
+                ok[k] = False  # the full solver would damp: hand the team back
+            if small or worse:
+                done = True
+                break
+        if not done:
+            ok[k] = False
+    return x, ok

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import chdtrc
 
+from uwb_env.localization._lm_kernel import LOSS_CODES, gauss_newton_teams
 from uwb_env.localization.alignment import paper_frame_2d_batch, rigid_align, rigid_align_batch
 from uwb_env.localization.robust import irls_weights, robust_cost
 from uwb_env.measurements import RangeMatrix
@@ -307,13 +308,6 @@ def _residuals(x, i, j, dist):
     return d - dist, diff / np.maximum(d, 1e-12)[..., None]
 
 
-def _incidence(i, j, n):
-    e = np.zeros((len(i), n))
-    e[np.arange(len(i)), i] = 1.0
-    e[np.arange(len(i)), j] = -1.0
-    return e
-
-
 def _information(u, i, j, w, n, dim):
     """J^T W J over all coordinates, (K, n*dim, n*dim): pair p adds w u u^T to the blocks
     (i, i) and (j, j) and subtracts it from (i, j) and (j, i); one matmul with a (n*n, P) sign
@@ -341,46 +335,18 @@ _SIGNS: dict = {}
 
 
 def _gauss_newton(x, i, j, dist, sqrt_iv, free, loss, f_scale, max_iterations, xtol_sigma, ok):
-    """Undamped Gauss-Newton (IRLS for robust losses) over the free coordinates of every team;
-    a team whose step raises the cost or that does not converge is marked not ok."""
-    k_teams, n, dim = x.shape
-    x = x.copy()
-    xtol = xtol_sigma / sqrt_iv.max(axis=1)
-    done = ~ok
-    incidence = _incidence(i, j, n)
-    res, u = _residuals(x, i, j, dist)
-    rw = None
-    for _ in range(max_iterations):
-        active = ~done
-        if not active.any():
-            break
-        z = res * sqrt_iv
-        rw = np.ones_like(z) if loss == "linear" else irls_weights(z, loss, f_scale)
-        w = sqrt_iv**2 * rw
-        info = _information(u[active], i, j, w[active], n, dim)[:, free][:, :, free]
-        g = (w[active] * res[active])[..., None] * u[active]
-        grad_full = np.einsum("pa,kpd->kad", incidence, g)
-        try:
-            step = np.linalg.solve(info, grad_full.reshape(len(grad_full), -1)[:, free][..., None])[..., 0]
-        except np.linalg.LinAlgError:
-            ok[active] = False
-            done[active] = True
-            break
-        delta = np.zeros((len(step), n * dim))
-        delta[:, free] = step
-        trial = x[active] - delta.reshape(-1, n, dim)
-        res_t, u_t = _residuals(trial, i, j, dist[active])
-        cost_old = _cost(res[active] * sqrt_iv[active], loss, f_scale)
-        cost_new = _cost(res_t * sqrt_iv[active], loss, f_scale)
-        idx = np.flatnonzero(active)
-        small = np.sqrt((step * step).sum(1)) <= xtol[active]
-        worse = cost_new > cost_old * (1 + 1e-12) + 1e-300
-        accept = ~worse
-        x[idx[accept]], res[idx[accept]], u[idx[accept]] = trial[accept], res_t[accept], u_t[accept]
-        ok[idx[worse & ~small]] = False  # the full solver would damp: hand the team back
-        done[idx[small | worse]] = True
-    ok &= done  # not converged within the budget: hand back
-    return x, ok, rw
+    """Undamped Gauss-Newton (IRLS for robust losses) over the free coordinates of every team,
+    one compiled loop over the teams (``_lm_kernel.gauss_newton_teams``); a team whose step
+    raises the cost, whose normal equations are singular or that does not converge is marked
+    not ok (the full solver takes it)."""
+    n_free = int(free.sum())
+    column = np.full(free.size, n_free, dtype=np.int64)
+    column[free] = np.arange(n_free)
+    x, ok = gauss_newton_teams(np.ascontiguousarray(x, dtype=np.float64), np.ascontiguousarray(i, dtype=np.int64),
+                               np.ascontiguousarray(j, dtype=np.int64), np.ascontiguousarray(dist, dtype=np.float64),
+                               np.ascontiguousarray(sqrt_iv, dtype=np.float64), column, n_free, LOSS_CODES[loss],
+                               float(f_scale), int(max_iterations), float(xtol_sigma), np.asarray(ok, dtype=bool))
+    return x, ok, None
 
 
 def _cost(z, loss, f_scale):
