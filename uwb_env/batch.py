@@ -222,11 +222,12 @@ class BatchedSystem:
                                                        solver.loss, solver.f_scale_sigmas, solver.gauge),
                               strict=True):
                 results[r] = res
-        ok = np.zeros(len(copies), dtype=bool)
+        ok = np.array([r is not None for r in results], dtype=bool)
+        if ok.any():
+            rows = np.flatnonzero(ok)
+            self._apply_many(copies[rows], [results[r] for r in rows], self.anchors_est[copies[rows]] - est_mid[rows])
         for row, k in enumerate(copies):
-            if results[row] is not None:
-                self._apply(k, results[row], self.anchors_est[k] - est_mid[row])
-                ok[row] = True
+            if ok[row]:
                 continue
             try:
                 matrix = RangeMatrix(mean[row], std[row], count[row])
@@ -249,6 +250,27 @@ class BatchedSystem:
             return False
         self._apply(k, result, self.anchors_est[k] - est_mid)
         return True
+
+    def _apply_many(self, ks: np.ndarray, results: list, since_mid: np.ndarray) -> None:
+        """:meth:`_apply` for many copies' batched results at once."""
+        n = self.N
+        positions = np.stack([r.positions for r in results])
+        full = np.stack([r.covariance for r in results]).reshape(len(ks), n, 2, n, 2).transpose(0, 1, 3, 2, 4)
+        idx = np.arange(n)
+        chi2 = np.array([r.chi2 for r in results])
+        dof = np.array([max(r.dof, 1) for r in results])
+        poor = np.array([r.status == "poor_fit" for r in results])
+        scale = np.where(poor, np.maximum(1.0, chi2 / dof), 1.0)
+        self.anchors_est[ks] = positions + since_mid
+        self.anchor_cov[ks] = scale[:, None, None, None] * full[:, idx, idx]
+        self.calibration_var_m2[ks] = np.trace(self.anchor_cov[ks], axis1=2, axis2=3)
+        residuals = np.stack([r.residuals_m for r in results])
+        self.last_calibration_rms_m[ks] = np.sqrt(np.mean(residuals**2, axis=1))
+        self.calibration_count[ks] += 1
+        self.time_since_calibration_s[ks] = 0.0
+        self.distance_since_calibration_m[ks] = 0.0
+        self.steps_since_calibration[ks] = 0
+        self._hist[ks] = 0
 
     def _apply(self, k: int, result, since_mid: np.ndarray) -> None:
         self.anchors_est[k] = result.positions + since_mid
