@@ -25,7 +25,12 @@ import numpy as np
 from uwb_env.config import EnvConfig
 from uwb_env.localization import calibrate_anchors
 from uwb_env.localization.alignment import rigid_align_batch
-from uwb_env.localization.batched_calibration import first_calibrations, later_calibrations, symmetric_arrays
+from uwb_env.localization.batched_calibration import (
+    BatchedCalibration,
+    first_calibrations,
+    later_calibrations,
+    symmetric_arrays,
+)
 from uwb_env.localization.errors import LocalizationError
 from uwb_env.localization.multilateration import check_mirror_2d, refit_stuck_tags_2d, track_tags_2d
 from uwb_env.measurements import RangeMatrix
@@ -125,7 +130,11 @@ class BatchedSystem:
         rot[failed], origin[failed] = np.eye(2), 0.0
         self.frame_rot, self.frame_origin = rot, -np.einsum("bji,bj->bi", rot, origin)
         since_mid = np.einsum("bnj,bij->bni", est_now - 0.5 * (est_start + est_now), rot)
-        for k in np.flatnonzero(~failed):
+        batched = np.array([not failed[k] and isinstance(r, BatchedCalibration) for k, r in enumerate(results)])
+        if batched.any():
+            ks = np.flatnonzero(batched)
+            self._apply_many(ks, [results[k] for k in ks], since_mid[ks])
+        for k in np.flatnonzero(~failed & ~batched):
             self._apply(k, results[k], since_mid[k])
         self._end_cohort(cohort)
         self._fix_tags(np.ones(B, dtype=bool), cold=True)

@@ -49,15 +49,15 @@ class MotionModel:
         """Start from ``positions`` (n, dim); draw speeds, headings, waypoints per robot."""
         self.positions = np.array(positions, dtype=float)
         n = len(self.positions)
-        per_robot = [cfg for cfg, count in self.groups for _ in range(count)]
-        if len(per_robot) != n:
-            raise ValueError(f"positions has {n} rows, motion groups describe {len(per_robot)}")
+        counts = [count for _, count in self.groups]
+        if sum(counts) != n:
+            raise ValueError(f"positions has {n} rows, motion groups describe {sum(counts)}")
 
-        def column(attr: str) -> np.ndarray:
-            return np.array([getattr(c, attr) for c in per_robot], dtype=float)
+        def column(attr: str, dtype=float) -> np.ndarray:  # one value per group, repeated per robot
+            return np.repeat(np.array([getattr(cfg, attr) for cfg, _ in self.groups], dtype=dtype), counts)
 
         lo, hi = column("speed_min_mps"), column("speed_max_mps")
-        models = np.array([c.model for c in per_robot])
+        models = column("model", object).astype(str)
         static = models == "static"
         self.speeds = np.where(static, 0.0, rng.uniform(lo, hi))
         self.headings = rng.uniform(-np.pi, np.pi, n)
