@@ -160,6 +160,9 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--only-never-raises", action="store_true",
                         help="run the never-raises sweep alone; update its keys in the committed JSON")
+    parser.add_argument("--skip-never-raises", action="store_true",
+                        help="catastrophic figures only; the sweep's (and, without --before, the before-run's) "
+                             "keys are kept from the committed JSON with their own code versions")
     args = parser.parse_args()
     if args.only_never_raises:
         only_never_raises(args.seeds or 1000, args.workers)
@@ -170,17 +173,31 @@ def main() -> None:
     default = catastrophic(n, {}, args.workers)
     free = catastrophic(max(n // 5, 20), FREE_MOTION, args.workers)
     old = before(args.before, max(n // 2, 20), args.workers) if args.before else None
-    sweep = never_raises(seeds, args.workers)
     results = {
         "catastrophic_episode_rate": max(v["rate"] for v in default.values()),
         "catastrophic_episodes_per_interval": n,
-        "never_raises_seeds": seeds,
-        "never_raises_exceptions": sweep["exceptions"],
-        "never_raises_by_type": json.dumps(sweep["by_type"]),
-        "never_raises_examples": json.dumps(sweep["examples"]),
-        "never_raises_slowest_episode": json.dumps(sweep["slowest"]),
         "code_version": version,
     }
+    if args.skip_never_raises:
+        path = Path(__file__).resolve().parent / "results" / "bench_episodes.json"
+        kept = json.loads(path.read_text()) if path.exists() and not args.quick else {}
+        results.update({k: v for k, v in kept.items() if k.startswith("never_raises")
+                        or (old is None and k.startswith("before"))})
+        if old is None:
+            results.update({k: v for k, v in kept.items() if k.endswith("_before")})
+            if "before_revision" in kept:
+                results["before_code_version_note"] = "before-figures kept from the run at " + str(
+                    kept.get("code_version"))
+    else:
+        sweep = never_raises(seeds, args.workers)
+        results.update({
+            "never_raises_seeds": seeds,
+            "never_raises_exceptions": sweep["exceptions"],
+            "never_raises_by_type": json.dumps(sweep["by_type"]),
+            "never_raises_examples": json.dumps(sweep["examples"]),
+            "never_raises_slowest_episode": json.dumps(sweep["slowest"]),
+            "never_raises_code_version": version,
+        })
     print(f"{'interval':>8} {'default rate':>13} {'95% CI':>15} {'median m':>9} {'free-motion rate':>17}"
           + (f" {'before (' + args.before + ')':>16}" if old else ""))
     for k in INTERVALS:
@@ -199,7 +216,8 @@ def main() -> None:
     if old:
         results["before_revision"] = args.before
         results["before_episodes_per_interval"] = max(n // 2, 20)
-    print(f"never raises: {sweep['exceptions']} exceptions over {seeds} seeds {sweep['by_type'] or ''}")
+    if not args.skip_never_raises:
+        print(f"never raises: {sweep['exceptions']} exceptions over {seeds} seeds {sweep['by_type'] or ''}")
     results["wall_s"] = round(time.perf_counter() - t0, 1)
     write_results("bench_episodes_quick" if args.quick else "bench_episodes", results, args.quick)
 
