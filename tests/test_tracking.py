@@ -116,3 +116,65 @@ def test_mirror_check_switches_a_rejected_fix_and_flags_a_true_ambiguity():
     pos, status, switched = check_mirror_2d(anchors[None], np.array([[[2.0, 1.0]]]),
                                             np.linalg.norm(anchors - [2.0, 1.0], axis=1)[None, None], var)
     assert status[0, 0] == TAG_OK and not switched.any()
+
+
+def _reference_mirror(anchors, positions, ranges, var, cov, loss, f_scale, margin=10.83, iterations=3):
+    """One group's mirror check in numpy complex algebra (independent of the compiled kernel)."""
+    positions = positions.copy()
+    m = len(positions)
+    status, switched = np.zeros(m, np.int8), np.zeros(m, bool)
+    fixed = np.isfinite(positions).all(-1)
+    status[~fixed] = 2
+    za = anchors[:, 0] + 1j * anchors[:, 1]
+    centre = za.mean()
+    d = za - centre
+    turn = np.exp(1j * np.angle((d * d).sum()))
+    zp = positions[:, 0] + 1j * positions[:, 1]
+    zm = centre + turn * np.conj(zp - centre)
+
+    def chi2(z):
+        res = np.abs(z[:, None] - za[None]) - ranges
+        return np.nansum(res * res, -1) / var, np.isfinite(res).sum(-1)
+
+    c_fix, n_valid = chi2(zp)
+    c_raw, _ = chi2(zm)
+    candidate = fixed & (n_valid >= 3) & (c_raw < c_fix + margin + 50.0 * n_valid) & (np.abs(zm - zp) > 3 * np.sqrt(var))
+    start = np.where(candidate[:, None], np.stack([zm.real, zm.imag], -1), np.nan_to_num(positions))
+    refined = _reference(anchors, start, ranges, var, cov, loss, f_scale, iterations)[0]
+    zr = refined[:, 0] + 1j * refined[:, 1]
+    c_mir, _ = chi2(zr)
+    ok = candidate & np.isfinite(c_mir) & (np.abs(zr - zp) > 3 * np.sqrt(var))
+    better = ok & (c_mir < c_fix - margin)
+    tie = ok & ~better & (np.abs(c_mir - c_fix) <= margin)
+    positions[better] = refined[better]
+    switched |= better
+    status[tie] = 1
+    return positions, status, switched
+
+
+@pytest.mark.parametrize("loss", ["linear", "cauchy", "nlos"])
+@pytest.mark.parametrize("with_cov", [False, True])
+def test_mirror_kernel_matches_the_reference(loss, with_cov, rng):
+    from uwb_env.localization.multilateration import check_mirror_2d
+
+    groups, outcomes = [], set()
+    for g in range(40):
+        # near-collinear anchors (the mirror is a real candidate) and tags on either side
+        anchors = np.column_stack([rng.uniform(0, 20, 4), rng.normal(0, 0.3 + 0.1 * (g % 5), 4)])
+        tags = np.column_stack([rng.uniform(0, 20, 5), rng.normal(0, 3, 5)])
+        ranges = np.linalg.norm(tags[:, None] - anchors[None], axis=-1) + 0.03 * rng.standard_normal((5, 4))
+        ranges[0, g % 4] = np.nan
+        fixes = tags * np.array([1.0, -1.0 if g % 2 else 1.0]) + rng.normal(0, 0.05, tags.shape)
+        fixes[4] = np.nan  # a tag without a fix
+        cov = np.stack([np.diag(rng.uniform(0.001, 0.01, 2)) for _ in range(4)])
+        groups.append((anchors, fixes, ranges, cov))
+    var = rng.uniform(0.0005, 0.003, len(groups))
+    stack = [np.stack([g[i] for g in groups]) for i in range(4)]
+    got = check_mirror_2d(stack[0], stack[1], stack[2], var, stack[3] if with_cov else None, loss, 2.0)
+    for k, (anchors, fixes, ranges, cov) in enumerate(groups):
+        want = _reference_mirror(anchors, fixes, ranges, var[k], cov if with_cov else None, loss, 2.0)
+        np.testing.assert_allclose(got[0][k], want[0], rtol=1e-9, atol=1e-12, equal_nan=True)
+        np.testing.assert_array_equal(got[1][k], want[1])
+        np.testing.assert_array_equal(got[2][k], want[2])
+        outcomes |= set(want[1].tolist()) | ({"switched"} if want[2].any() else set())
+    assert {0, 1, 2, "switched"} <= outcomes  # every branch exercised

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from uwb_env.localization._lm_kernel import LOSS_CODES
-from uwb_env.localization._tracking_kernel import track_2d
+from uwb_env.localization._tracking_kernel import TAG_AMBIGUOUS, TAG_NO_FIX, TAG_OK, mirror_check_2d, track_2d
 from uwb_env.localization.errors import InvalidPositionError, InvalidRangeError
 from uwb_env.localization.robust import check_loss, irls_weights
 
@@ -374,7 +374,6 @@ _NO_COVARIANCE = np.zeros((0, 0, 2, 2))
 
 
 # Per-tag verdicts of the tracker (``check_mirror_2d``).
-TAG_OK, TAG_AMBIGUOUS, TAG_NO_FIX = 0, 1, 2
 TAG_STATUS_NAMES = {TAG_OK: "ok", TAG_AMBIGUOUS: "ambiguous", TAG_NO_FIX: "no_fix"}
 
 
@@ -399,53 +398,16 @@ def check_mirror_2d(anchors, positions, ranges_m, range_var_m2, anchor_covarianc
     Returns ``(positions, status, switched)``: positions with rejected fixes replaced, status
     (S, M) int8, switched (S, M) bool.
     """
-    anchors = np.asarray(anchors, dtype=float)
-    positions = np.array(positions, dtype=float)
-    s, m = positions.shape[:2]
-    var = np.asarray(range_var_m2, dtype=float)
-    if var.size > 1:  # one variance per group
-        range_var_m2, var_kernel = var.reshape(-1, 1), var.reshape(-1, 1, 1)
-    else:
-        range_var_m2 = var_kernel = var.item()
-    status = np.full((s, m), TAG_OK, dtype=np.int8)
-    switched = np.zeros((s, m), dtype=bool)
-    fixed = np.isfinite(positions).all(-1)
-    status[~fixed] = TAG_NO_FIX
-    if not fixed.any() or anchors.shape[1] < 3:
-        return positions, status, switched
-    # principal axis per group (closed form of the 2x2 covariance's eigenvector)
-    za = anchors[..., 0] + 1j * anchors[..., 1]
-    centre = za.mean(1, keepdims=True)
-    d = za - centre
-    turn = np.exp(1j * np.angle((d * d).sum(1, keepdims=True)))  # e^{2i theta}
-    zp = positions[..., 0] + 1j * positions[..., 1]
-    zm = centre + turn * np.conj(zp - centre)
-
-    def chi2(z):
-        pred = np.abs(z[..., None] - za[:, None, :])
-        res = pred - ranges_m
-        return np.nansum(res * res, -1) / range_var_m2, np.isfinite(res).sum(-1)
-
-    c_fix, n_valid = chi2(zp)
-    c_raw, _ = chi2(zm)
-    # refining moves the mirror at most into the neighbouring minimum: only a raw misfit within
-    # a generous bound can end within the margin
-    candidate = fixed & (n_valid >= 3) & (c_raw < c_fix + margin_chi2 + 50.0 * n_valid) & \
-        (np.abs(zm - zp) > 3.0 * np.sqrt(range_var_m2))
-    if not candidate.any():
-        return positions, status, switched
-    start = np.where(candidate[..., None], np.stack([zm.real, zm.imag], -1), positions)
-    refined, _, _ = track_tags_2d(anchors, start, ranges_m, var_kernel, anchor_covariance, loss, f_scale,
-                                  iterations)
-    zr = refined[..., 0] + 1j * refined[..., 1]
-    c_mir, _ = chi2(zr)
-    ok_mirror = candidate & np.isfinite(c_mir) & (np.abs(zr - zp) > 3.0 * np.sqrt(range_var_m2))
-    better = ok_mirror & (c_mir < c_fix - margin_chi2)
-    tie = ok_mirror & ~better & (np.abs(c_mir - c_fix) <= margin_chi2)
-    positions[better] = refined[better]
-    switched |= better
-    status[tie] = TAG_AMBIGUOUS
-    return positions, status, switched
+    positions = np.ascontiguousarray(positions, dtype=np.float64)
+    ranges_m = np.ascontiguousarray(ranges_m, dtype=np.float64)
+    s = positions.shape[0]
+    var = np.ascontiguousarray(np.broadcast_to(np.asarray(range_var_m2, dtype=np.float64).reshape(-1), (s,)))
+    use_cov = anchor_covariance is not None
+    cov = np.ascontiguousarray(anchor_covariance, dtype=np.float64) if use_cov else _NO_COVARIANCE
+    if loss not in LOSS_CODES:
+        check_loss(loss)
+    return mirror_check_2d(np.ascontiguousarray(anchors, dtype=np.float64), positions, ranges_m, var, cov, use_cov,
+                           LOSS_CODES[loss], float(f_scale), float(margin_chi2), int(iterations))
 
 
 def check_mirror_3d(anchors, positions, ranges_m, range_var_m2, anchor_covariance=None, loss="linear", f_scale=2.0,
