@@ -36,6 +36,7 @@ from uwb_env.localization.multilateration import check_mirror_2d, refit_stuck_ta
 from uwb_env.measurements import RangeMatrix
 from uwb_env.sim.motion import MotionModel
 from uwb_env.sim.odometry import OdometryModel
+from uwb_env.sim.planar_errors import planar_errors
 from uwb_env.sim.round_cohort import RoundCohort
 from uwb_env.sim.world import formation_xy, tags_inside
 from uwb_env.system import OBS_FIELDS, LocalizationSystem
@@ -387,25 +388,10 @@ class BatchedSystem:
 
     def errors_m(self) -> tuple[np.ndarray, np.ndarray]:
         """(B, N) anchor and (B, M) tag errors after each copy's rigid constellation alignment
-        (as the single env), tag errors capped at ``error_cap_m``."""
-        rot, org = self.frame_rot, self.frame_origin
-        truth_a = np.einsum("bij,bnj->bni", rot, self.anchors_true - org[:, None])
-        truth_t = np.einsum("bij,bnj->bni", rot, self.tags_true - org[:, None])
-        est = self.anchors_est
-        # 2D Procrustes without reflection, closed form per copy
-        ma, me = truth_a.mean(1, keepdims=True), est.mean(1, keepdims=True)
-        s, t = truth_a - ma, est - me
-        angle = np.arctan2((s[..., 0] * t[..., 1] - s[..., 1] * t[..., 0]).sum(1), (s * t).sum((1, 2)))
-        c, si = np.cos(angle)[:, None], np.sin(angle)[:, None]
-
-        def align(p):
-            q = p - ma
-            return np.stack([c * q[..., 0] - si * q[..., 1], si * q[..., 0] + c * q[..., 1]], -1) + me
-
-        anchor_err = np.linalg.norm(est - align(truth_a), axis=-1)
-        tag_err = np.linalg.norm(self.tag_fix - align(truth_t), axis=-1)
-        cap = self.config.error_cap_m
-        return anchor_err, np.minimum(np.where(np.isfinite(tag_err), tag_err, cap), cap)
+        (the single env's kernel, ``sim.planar_errors``), tag errors capped at ``error_cap_m``."""
+        a_const, t_const, _, _, _ = planar_errors(self.frame_rot, self.frame_origin, self.anchors_true, self.tags_true,
+                                                  self.anchors_est, self.tag_fix, float(self.config.error_cap_m))
+        return a_const, t_const
 
     def rewards(self, report: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         cfg = self.config

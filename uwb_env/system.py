@@ -13,7 +13,6 @@ anchor positions onto that solution, so errors are measured where users see posi
 
 from __future__ import annotations
 
-import cmath
 import math
 from dataclasses import dataclass, replace
 
@@ -31,6 +30,7 @@ from uwb_env.localization.multilateration import (
 from uwb_env.localization.relocation import relocate_anchor
 from uwb_env.measurements import pool_rounds
 from uwb_env.sim import RangeModel, World
+from uwb_env.sim.planar_errors import planar_errors
 
 # CalibrationResult.status values, in the order of the ``calibration_fit`` code
 CALIBRATION_FIT_NAMES = ("ok", "poor_fit", "not_converged")
@@ -509,29 +509,15 @@ class LocalizationSystem:
         return truth
 
     def _planar_errors(self) -> dict:
-        """Every truth metric of this step at once, for 2D (the envs' hot path).
-
-        Points are complex numbers: the constellation transform is the rotation e^{i theta}
-        with theta the angle of sum conj(a_k) b_k over the centred true (a) and estimated (b)
-        anchors (the closed-form 2D Procrustes solution). A handful of points: plain Python
-        complex arithmetic is several times cheaper here than numpy calls.
-        """
-        n, world, cap = self.n_anchors, self.world, self.config.error_cap_m
-        (r00, r01), (r10, r11) = world.frame_rotation.tolist()
-        ox, oy = world.frame_origin.tolist()
-        truth = [complex(r00 * (x - ox) + r01 * (y - oy), r10 * (x - ox) + r11 * (y - oy))
-                 for x, y in world.motion.positions.tolist()]  # anchors, then tags
-        est = [complex(x, y) for x, y in world.anchors_est.tolist() + self.tag_fix.tolist()]
-        mu_s, mu_t = sum(truth[:n]) / n, sum(est[:n]) / n
-        align = sum((t - mu_s).conjugate() * (e - mu_t) for t, e in zip(truth[:n], est[:n], strict=True))
-        turn = align / abs(align) if align != 0 else 1.0
-        const = [abs(e - ((t - mu_s) * turn + mu_t)) for t, e in zip(truth, est, strict=True)]
-        fixed = [abs(e - t) for t, e in zip(truth, est, strict=True)]
-        capped = [[e if e <= cap else cap for e in row[n:]] for row in (const, fixed)]  # NaN -> the cap
-        heading = (truth[1] - truth[0]) * (est[1] - est[0]).conjugate()
-        return {("anchor", "constellation"): np.array(const[:n]), ("anchor", "fixed"): np.array(fixed[:n]),
-                ("tag", "constellation"): np.array(capped[0]), ("tag", "fixed"): np.array(capped[1]),
-                "rotation": abs(cmath.phase(heading))}
+        """Every truth metric of this step at once, for 2D (the envs' hot path): the compiled
+        kernel the batched env uses too (``sim.planar_errors``), for a batch of one."""
+        n, world = self.n_anchors, self.world
+        truth = world.motion.positions
+        a_const, t_const, a_fixed, t_fixed, rotation = planar_errors(
+            world.frame_rotation[None], world.frame_origin[None], truth[None, :n], truth[None, n:],
+            world.anchors_est[None], self.tag_fix[None], float(self.config.error_cap_m))
+        return {("anchor", "constellation"): a_const[0], ("anchor", "fixed"): a_fixed[0],
+                ("tag", "constellation"): t_const[0], ("tag", "fixed"): t_fixed[0], "rotation": float(rotation[0])}
 
     def anchor_errors_m(self, frame: str = "constellation") -> np.ndarray:
         """Per-anchor error; ``constellation`` (after rigid alignment) or ``fixed`` (first-calibration frame).
