@@ -178,3 +178,27 @@ def test_mirror_kernel_matches_the_reference(loss, with_cov, rng):
         np.testing.assert_array_equal(got[2][k], want[2])
         outcomes |= set(want[1].tolist()) | ({"switched"} if want[2].any() else set())
     assert {0, 1, 2, "switched"} <= outcomes  # every branch exercised
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_residual_statistics_match_numpy(dim, rng):
+    from uwb_env.localization._tracking_kernel import residual_statistics
+
+    s, m, n = 4, 5, 6
+    anchors = rng.uniform(0, 20, (s, n, dim))
+    positions = rng.uniform(0, 20, (s, m, dim))
+    ranges = np.linalg.norm(positions[:, :, None] - anchors[:, None], axis=-1) + rng.normal(0, 0.1, (s, m, n))
+    ranges[0, 1, 2] = np.nan
+    positions[1, 3] = np.nan
+    positions[2] = np.nan  # a group without any fix
+    tag_mean, anchor_mean, any_fix = residual_statistics(anchors, positions, ranges)
+    res = np.linalg.norm(positions[:, :, None] - anchors[:, None], axis=-1) - ranges  # NaN where either is
+    fixed = np.isfinite(positions).all(-1)
+    rms = np.sqrt(np.nanmean(np.where(fixed[..., None], res, np.nan) ** 2, axis=-1))
+    for g in range(s):
+        assert any_fix[g] == fixed[g].any()
+        if fixed[g].any():
+            np.testing.assert_allclose(tag_mean[g], rms[g][fixed[g]].mean(), rtol=1e-12)
+            seen = np.isfinite(res[g]) & fixed[g][:, None]
+            want = np.where(seen, np.abs(res[g]), 0.0).sum(0) / np.maximum(seen.sum(0), 1)
+            np.testing.assert_allclose(anchor_mean[g], want, rtol=1e-12)

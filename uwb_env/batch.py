@@ -24,6 +24,7 @@ import numpy as np
 
 from uwb_env.config import EnvConfig
 from uwb_env.localization import calibrate_anchors
+from uwb_env.localization._tracking_kernel import residual_statistics
 from uwb_env.localization.alignment import rigid_align_batch
 from uwb_env.localization.batched_calibration import (
     BatchedCalibration,
@@ -343,13 +344,8 @@ class BatchedSystem:
         self.tag_velocity[sel] = np.where(had[..., None], (new - np.nan_to_num(old)) / self.dt_s,
                                           self.tag_velocity[sel])
         self.tag_fix[sel] = new
-        # residual statistics per copy
-        predicted = np.linalg.norm(new[:, :, None, :] - self.anchors_est[sel][:, None, :, :], axis=-1)
-        per_anchor = np.abs(predicted - ranges[sel])
-        seen = np.isfinite(per_anchor) & ok[..., None]
-        tag_mean = np.where(ok, rms, 0.0).sum(1) / np.maximum(ok.sum(1), 1)
-        anchor_mean = np.where(seen, per_anchor, 0.0).sum(1) / np.maximum(seen.sum(1), 1)
-        any_ok = ok.any(1)
+        # residual statistics per copy, of the fixes made this step (as the single env's)
+        tag_mean, anchor_mean, any_ok = residual_statistics(self.anchors_est[sel], pos, ranges[sel])
         w = self.config.residual_window_steps
         slot = self._hist[sel] % w
         prev = (slot - 1) % w

@@ -20,6 +20,7 @@ import numpy as np
 
 from uwb_env.config import EnvConfig
 from uwb_env.localization import LocalizationError, calibrate_anchors, locate_tags, rigid_align
+from uwb_env.localization._tracking_kernel import residual_statistics
 from uwb_env.localization.multilateration import (
     TAG_NO_FIX,
     check_mirror_2d,
@@ -386,12 +387,10 @@ class LocalizationSystem:
             positions, rms, res = track_tags_2d(anchors[None], self.tag_fix[None], ranges[None], self.range_std_m**2,
                                                 None if cov is None else cov[None], solver.loss,
                                                 solver.f_scale_sigmas, solver.tag_iterations)
-            positions, rms, per_anchor = positions[0], rms[0], np.abs(res[0])
+            positions, rms = positions[0], rms[0]
             refit = refit_stuck_tags(anchors, ranges, positions, rms, restart_m, self.range_std_m, cov,
                                      solver.loss, solver.f_scale_sigmas)
             self.tag_refits += len(refit)
-            if len(refit):
-                per_anchor[refit] = np.abs(np.linalg.norm(positions[refit, None] - anchors, axis=-1) - ranges[refit])
         else:
             fix = locate_tags(
                 anchors, ranges, self.range_std_m, anchor_covariance=cov, loss=solver.loss,
@@ -399,7 +398,6 @@ class LocalizationSystem:
                 with_covariance=False, restart_residual_m=restart_m,
             )
             positions, rms = fix.positions, np.where(fix.ok, fix.residual_rms_m, np.nan)
-            per_anchor = np.abs(np.linalg.norm(positions[:, None, :] - anchors[None], axis=-1) - ranges)
         if self.n_tags:
             var = self.range_std_m**2 + float(pred_var.mean()) / 2
             if self.dim == 2:
@@ -414,7 +412,6 @@ class LocalizationSystem:
                 positions = checked[0]
                 self.tag_mirror_switches += int(switched.sum())
                 res = np.linalg.norm(positions[:, None, :] - anchors[None], axis=-1) - ranges
-                per_anchor = np.abs(res)
                 n_ranges = np.isfinite(res).sum(axis=1)  # a tag without ranges keeps its NaN
                 mean_sq = np.nansum(res * res, axis=1) / np.maximum(n_ranges, 1)
                 rms = np.where(np.isfinite(rms) & (n_ranges > 0), np.sqrt(mean_sq), rms)
@@ -434,15 +431,13 @@ class LocalizationSystem:
                                          self.tag_velocity)
             self.tag_fix = new
             self.tag_fix_age_s = np.where(ok, 0.0, self.tag_fix_age_s + dt)
-        # Residual statistics: what a deployed system can see that its anchors went stale.
+        # Residual statistics: what a deployed system can see that its anchors went stale (the
+        # batched env's kernel, for a batch of one).
         i = self._hist_index % self.config.residual_window_steps
-        if all_ok and math.isfinite(_sum(per_anchor, None)):
-            self._tag_residual_hist[i] = float(_sum(rms)) / self.n_tags
-            self._anchor_residual_hist[i] = _sum(per_anchor, 0) * (1.0 / self.n_tags)
-        elif ok.any():
-            self._tag_residual_hist[i] = rms[ok].mean()
-            seen = np.isfinite(per_anchor) & ok[:, None]
-            self._anchor_residual_hist[i] = np.where(seen, per_anchor, 0.0).sum(0) / np.maximum(seen.sum(0), 1)
+        tag_mean, anchor_mean, any_fix = residual_statistics(
+            anchors[None], np.where(ok[:, None], positions, np.nan)[None], ranges[None])
+        if any_fix[0]:
+            self._tag_residual_hist[i], self._anchor_residual_hist[i] = tag_mean[0], anchor_mean[0]
         else:  # no usable fix this step: carry the previous statistics
             self._tag_residual_hist[i] = self._tag_residual_hist[i - 1]
             self._anchor_residual_hist[i] = self._anchor_residual_hist[i - 1]

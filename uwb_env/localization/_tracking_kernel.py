@@ -177,3 +177,49 @@ def mirror_check_2d(anchors, positions, ranges, var, cov, use_cov, code, c, marg
             elif abs(c_mir - c_fix) <= margin_chi2:
                 status[s, m] = TAG_AMBIGUOUS
     return out, status, switched
+
+
+@njit(cache=True)
+def residual_statistics(anchors, positions, ranges):
+    """Per group: the mean over fixed tags of their RMS range residual, each anchor's mean
+    |residual| over the fixed tags that measured it, and whether any tag has a fix.
+    anchors (S, N, D), positions (S, M, D) (NaN = no fix), ranges (S, M, N) (NaN = missing)."""
+    s_count, m_count, n_count = ranges.shape
+    dim = anchors.shape[2]
+    tag_mean = np.zeros(s_count)
+    anchor_mean = np.zeros((s_count, n_count))
+    any_fix = np.zeros(s_count, np.bool_)
+    count = np.zeros(n_count)
+    for s in range(s_count):
+        fixed = 0
+        count[:] = 0.0
+        for m in range(m_count):
+            finite = True
+            for a in range(dim):
+                finite &= math.isfinite(positions[s, m, a])
+            if not finite:
+                continue
+            total = 0.0
+            seen = 0
+            for k in range(n_count):
+                r = ranges[s, m, k]
+                if r != r:
+                    continue
+                d2 = 0.0
+                for a in range(dim):
+                    t = positions[s, m, a] - anchors[s, k, a]
+                    d2 += t * t
+                e = math.sqrt(d2) - r
+                total += e * e
+                seen += 1
+                anchor_mean[s, k] += abs(e)
+                count[k] += 1.0
+            if seen:
+                tag_mean[s] += math.sqrt(total / seen)
+                fixed += 1
+        if fixed:
+            tag_mean[s] /= fixed
+            any_fix[s] = True
+        for k in range(n_count):
+            anchor_mean[s, k] /= max(count[k], 1.0)
+    return tag_mean, anchor_mean, any_fix
