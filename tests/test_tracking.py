@@ -194,7 +194,8 @@ def test_residual_statistics_match_numpy(dim, rng):
     tag_mean, anchor_mean, any_fix = residual_statistics(anchors, positions, ranges)
     res = np.linalg.norm(positions[:, :, None] - anchors[:, None], axis=-1) - ranges  # NaN where either is
     fixed = np.isfinite(positions).all(-1)
-    rms = np.sqrt(np.nanmean(np.where(fixed[..., None], res, np.nan) ** 2, axis=-1))
+    sq = np.where(fixed[..., None] & np.isfinite(res), res * res, 0.0)
+    rms = np.sqrt(sq.sum(-1) / np.maximum((fixed[..., None] & np.isfinite(res)).sum(-1), 1))
     for g in range(s):
         assert any_fix[g] == fixed[g].any()
         if fixed[g].any():
