@@ -79,33 +79,32 @@ def _evaluate(x, pi, pj, dist, sqrt_iv, z, u):
 
 
 @njit(cache=True)
-def _normal_equations(u, z, sqrt_iv, pi, pj, column, code, c, a_mat, g):
+def _normal_equations(u, z, sqrt_iv, pi, pj, column, code, c, a_mat, g, scratch):
     """J^T W J and J^T W z from per-pair blocks, in place; the extra (gauge) coordinate's row
-    and column are the identity's."""
+    and column are the identity's. ``scratch``: (3, dim) float buffer (no allocation per call)."""
     m = a_mat.shape[0]
     dim = u.shape[1]
     a_mat[:, :] = 0.0
     g[:] = 0.0
-    vi = np.empty(dim)
-    ci = np.empty(dim, np.int64)
-    cj = np.empty(dim, np.int64)
+    vi = scratch[0]
     for p in range(len(pi)):
         rw = math.sqrt(_weight(z[p], code, c))
         root_w = sqrt_iv[p] * rw
         wz = z[p] * rw
+        bi, bj = pi[p] * dim, pj[p] * dim
         for a in range(dim):
             vi[a] = u[p, a] * root_w
-            ci[a] = column[pi[p] * dim + a]
-            cj[a] = column[pj[p] * dim + a]
         for a in range(dim):
+            ca, da = column[bi + a], column[bj + a]
             for b in range(dim):
+                cb, db = column[bi + b], column[bj + b]
                 o = vi[a] * vi[b]
-                a_mat[ci[a], ci[b]] += o
-                a_mat[cj[a], cj[b]] += o
-                a_mat[ci[a], cj[b]] -= o
-                a_mat[cj[a], ci[b]] -= o
-            g[ci[a]] += vi[a] * wz
-            g[cj[a]] -= vi[a] * wz
+                a_mat[ca, cb] += o
+                a_mat[da, db] += o
+                a_mat[ca, db] -= o
+                a_mat[da, cb] -= o
+            g[ca] += vi[a] * wz
+            g[da] -= vi[a] * wz
     for k in range(m):
         a_mat[m - 1, k] = 0.0
         a_mat[k, m - 1] = 0.0
@@ -162,6 +161,7 @@ def lm_pairs(x0, pi, pj, column, n_free, dist, sqrt_iv, code, c, max_iterations,
     low = np.zeros((m, m))
     g = np.empty(m)
     step = np.empty(m)
+    scratch = np.empty((3, dim))
     _evaluate(x, pi, pj, dist, sqrt_iv, z, u)
     cost = _cost(z, code, c)
     cost_new = cost
@@ -170,7 +170,7 @@ def lm_pairs(x0, pi, pj, column, n_free, dist, sqrt_iv, code, c, max_iterations,
     status = 0
     it = 0
     for it in range(1, max_iterations + 1):
-        _normal_equations(u, z, sqrt_iv, pi, pj, column, code, c, a_mat, g)
+        _normal_equations(u, z, sqrt_iv, pi, pj, column, code, c, a_mat, g, scratch)
         small_step = False
         while True:
             if lam > 0.0:
@@ -228,13 +228,14 @@ def lm_pairs(x0, pi, pj, column, n_free, dist, sqrt_iv, code, c, max_iterations,
     for p in range(npairs):
         weights[p] = _weight(z[p], code, c)
     if not have_info:
-        _normal_equations(u, z, sqrt_iv, pi, pj, column, code, c, a_mat, g)
+        _normal_equations(u, z, sqrt_iv, pi, pj, column, code, c, a_mat, g, scratch)
     residuals = z / sqrt_iv
     return x, a_mat, residuals, weights, cost, it, status
 
 
 @njit(cache=True)
-def gauss_newton_teams(x0, pi, pj, dist, sqrt_iv, column, n_free, code, c, max_iterations, xtol_sigma, ok):
+def gauss_newton_teams(x0, pi, pj, dist, sqrt_iv, column, n_free, code, c, max_iterations, xtol_sigma, ok,
+                       ftol=1e-12):
     """Undamped Gauss-Newton (IRLS for robust losses) for many teams with the same pairs and
     gauge (``batched_calibration``): x0 (K, n, dim), dist / sqrt_iv (K, P), ok (K,) teams to
     solve. A team whose step raises the cost (where the full solver would damp), whose normal
@@ -254,6 +255,7 @@ def gauss_newton_teams(x0, pi, pj, dist, sqrt_iv, column, n_free, code, c, max_i
     low = np.zeros((m, m))
     g = np.empty(m)
     step = np.empty(m)
+    scratch = np.empty((3, dim))
     for k in range(k_teams):
         if not ok[k]:
             continue
@@ -262,7 +264,7 @@ def gauss_newton_teams(x0, pi, pj, dist, sqrt_iv, column, n_free, code, c, max_i
         _evaluate(xk, pi, pj, dist[k], sqrt_iv[k], z, u)
         done = False
         for _ in range(max_iterations):
-            _normal_equations(u, z, sqrt_iv[k], pi, pj, column, code, c, a_mat, g)
+            _normal_equations(u, z, sqrt_iv[k], pi, pj, column, code, c, a_mat, g, scratch)
             if not _cholesky_solve(a_mat, g, low, step):
                 ok[k] = False
                 done = True
@@ -276,7 +278,9 @@ def gauss_newton_teams(x0, pi, pj, dist, sqrt_iv, column, n_free, code, c, max_i
             _evaluate(trial, pi, pj, dist[k], sqrt_iv[k], z_new, u_new)
             cost_old = _cost(z, code, c)
             cost_new = _cost(z_new, code, c)
-            small = math.sqrt(norm2) <= xtol
+            # converged as the full solver: a step under the tolerance, or (IRLS, which creeps
+            # linearly) a relative cost decrease under ftol
+            small = math.sqrt(norm2) <= xtol or (cost_new <= cost_old and cost_old - cost_new <= ftol * cost_old)
             worse = cost_new > cost_old * (1 + 1e-12) + 1e-300
             if not worse:
                 xk[:, :] = trial
