@@ -294,3 +294,49 @@ def gauss_newton_teams(x0, pi, pj, dist, sqrt_iv, column, n_free, code, c, max_i
         if not done:
             ok[k] = False
     return x, ok
+
+
+@njit(cache=True)
+def team_covariances(x, pi, pj, dist, sqrt_iv, column, n_free, code, c, rows):
+    """(J^T W J)^-1 at each listed team's solution (robust weights included), expanded to all
+    n*dim coordinates with zeros on the gauge-fixed ones: (len(rows), n*dim, n*dim), and
+    whether each information matrix was positive definite (NaN covariance where not)."""
+    k_teams, n, dim = x.shape
+    npairs = len(pi)
+    m = n_free + 1
+    nd = n * dim
+    cov = np.zeros((len(rows), nd, nd))
+    good = np.ones(len(rows), np.bool_)
+    z = np.empty(npairs)
+    u = np.empty((npairs, dim))
+    a_mat = np.empty((m, m))
+    low = np.zeros((m, m))
+    g = np.empty(m)
+    e = np.zeros(m)
+    col = np.empty(m)
+    inv = np.empty((m, m))
+    scratch = np.empty((3, dim))
+    for r in range(len(rows)):
+        k = rows[r]
+        _evaluate(x[k], pi, pj, dist[k], sqrt_iv[k], z, u)
+        _normal_equations(u, z, sqrt_iv[k], pi, pj, column, code, c, a_mat, g, scratch)
+        for q in range(m):
+            e[:] = 0.0
+            e[q] = 1.0
+            if not _cholesky_solve(a_mat, e, low, col):
+                good[r] = False
+                break
+            for p in range(m):
+                inv[p, q] = col[p]
+        if not good[r]:
+            cov[r, :, :] = np.nan
+            continue
+        for a in range(nd):
+            ca = column[a]
+            if ca == n_free:
+                continue
+            for b in range(nd):
+                cb = column[b]
+                if cb != n_free:
+                    cov[r, a, b] = inv[ca, cb]
+    return cov, good

@@ -18,9 +18,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import chdtrc
 
-from uwb_env.localization._lm_kernel import LOSS_CODES, gauss_newton_teams
+from uwb_env.localization._lm_kernel import LOSS_CODES, gauss_newton_teams, team_covariances
 from uwb_env.localization.alignment import paper_frame_2d_batch, rigid_align, rigid_align_batch
-from uwb_env.localization.robust import irls_weights, robust_cost
+from uwb_env.localization.robust import robust_cost
 from uwb_env.measurements import RangeMatrix
 
 
@@ -240,9 +240,8 @@ def _solve_group(pairs, dist, var, prior, b, loss, f_scale, gauge, max_iteration
     x, ok, _ = _gauss_newton(x, i, j, dist, sqrt_iv, free, "linear", 1.0, max_iterations, 1e-3, ok)
     if loss != "linear":  # the robust stage from the plain solution, 4x the budget (linear convergence)
         x, ok, _ = _gauss_newton(x, i, j, dist, sqrt_iv, free, loss, f_scale, 4 * max_iterations, 1e-4, ok)
-    res, u = _residuals(x, i, j, dist)
+    res, _ = _residuals(x, i, j, dist)
     z = res * sqrt_iv
-    rw = irls_weights(z, loss, f_scale)  # the covariance uses the final robust weights
     chi2 = (z * z).sum(1)
     dof = len(pairs) - int(free.sum())
     p_value = chdtrc(dof, chi2) if dof > 0 else np.ones(k_teams)
@@ -254,11 +253,9 @@ def _solve_group(pairs, dist, var, prior, b, loss, f_scale, gauge, max_iteration
     rows = np.flatnonzero(ok)
     if not len(rows):
         return results
-    info = _information(u[rows], i, j, ((sqrt_iv * np.sqrt(rw)) ** 2)[rows], n, dim)[:, free][:, :, free]
-    cov_free, good = _inverse(info)
-    fidx = np.flatnonzero(free)
-    cov = np.zeros((len(rows), n * dim, n * dim))
-    cov[:, fidx[:, None], fidx[None, :]] = cov_free
+    column, n_free = _columns(free)
+    cov, good = team_covariances(x, np.ascontiguousarray(i, dtype=np.int64), np.ascontiguousarray(j, dtype=np.int64),
+                                 dist, sqrt_iv, column, n_free, LOSS_CODES[loss], float(f_scale), rows)
     xs = x[rows]
     if gauge == "paper":  # the first calibration's sign rule on the gauge solution (an axis flip)
         flip = np.where(xs[:, :, 1].sum(1) < 0, -1.0, 1.0)
@@ -282,20 +279,6 @@ def _solve_group(pairs, dist, var, prior, b, loss, f_scale, gauge, max_iteration
     return results
 
 
-def _inverse(info: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Batched inverse; (inverses, invertible) with NaN where a matrix is singular."""
-    try:
-        return np.linalg.inv(info), np.ones(len(info), dtype=bool)
-    except np.linalg.LinAlgError:
-        out, good = np.full_like(info, np.nan), np.ones(len(info), dtype=bool)
-        for r in range(len(info)):
-            try:
-                out[r] = np.linalg.inv(info[r])
-            except np.linalg.LinAlgError:
-                good[r] = False
-        return out, good
-
-
 def _rotate(cov: np.ndarray, rot: np.ndarray, n: int, dim: int) -> np.ndarray:
     """(K, n*dim, n*dim) covariances of points rotated by (K, dim, dim): blockwise R C R^T."""
     c5 = cov.reshape(len(cov), n, dim, n, dim)
@@ -308,30 +291,13 @@ def _residuals(x, i, j, dist):
     return d - dist, diff / np.maximum(d, 1e-12)[..., None]
 
 
-def _information(u, i, j, w, n, dim):
-    """J^T W J over all coordinates, (K, n*dim, n*dim): pair p adds w u u^T to the blocks
-    (i, i) and (j, j) and subtracts it from (i, j) and (j, i); one matmul with a (n*n, P) sign
-    matrix does every pair of every team."""
-    outer = (w[..., None, None] * u[..., :, None] * u[..., None, :]).reshape(u.shape[0], len(i), dim * dim)
-    blocks = _block_signs(i, j, n) @ outer  # (K, n*n, dim*dim)
-    return blocks.reshape(-1, n, n, dim, dim).transpose(0, 1, 3, 2, 4).reshape(-1, n * dim, n * dim)
-
-
-def _block_signs(i, j, n) -> np.ndarray:
-    key = (n, i.tobytes(), j.tobytes())
-    signs = _SIGNS.get(key)
-    if signs is None:
-        p = np.arange(len(i))
-        signs = np.zeros((n * n, len(i)))
-        np.add.at(signs, (i * n + i, p), 1.0)
-        np.add.at(signs, (j * n + j, p), 1.0)
-        np.add.at(signs, (i * n + j, p), -1.0)
-        np.add.at(signs, (j * n + i, p), -1.0)
-        _SIGNS[key] = signs
-    return signs
-
-
-_SIGNS: dict = {}
+def _columns(free: np.ndarray) -> tuple[np.ndarray, int]:
+    """Column of each coordinate in the free-coordinate system; gauge-fixed ones map to the
+    extra last column (``_lm_kernel``'s convention)."""
+    n_free = int(free.sum())
+    column = np.full(free.size, n_free, dtype=np.int64)
+    column[free] = np.arange(n_free)
+    return column, n_free
 
 
 def _gauss_newton(x, i, j, dist, sqrt_iv, free, loss, f_scale, max_iterations, xtol_sigma, ok):
@@ -339,9 +305,7 @@ def _gauss_newton(x, i, j, dist, sqrt_iv, free, loss, f_scale, max_iterations, x
     one compiled loop over the teams (``_lm_kernel.gauss_newton_teams``); a team whose step
     raises the cost, whose normal equations are singular or that does not converge is marked
     not ok (the full solver takes it)."""
-    n_free = int(free.sum())
-    column = np.full(free.size, n_free, dtype=np.int64)
-    column[free] = np.arange(n_free)
+    column, n_free = _columns(free)
     x, ok = gauss_newton_teams(np.ascontiguousarray(x, dtype=np.float64), np.ascontiguousarray(i, dtype=np.int64),
                                np.ascontiguousarray(j, dtype=np.int64), np.ascontiguousarray(dist, dtype=np.float64),
                                np.ascontiguousarray(sqrt_iv, dtype=np.float64), column, n_free, LOSS_CODES[loss],
