@@ -109,6 +109,14 @@ def code_version() -> str:
     return out.stdout.strip() or "unknown"
 
 
+def sweep_keys(sweep: dict, seeds: int, version: str) -> dict:
+    """The never-raises sweep's figures as flat JSON keys."""
+    return {"never_raises_seeds": seeds, "never_raises_exceptions": sweep["exceptions"],
+            "never_raises_by_type": json.dumps(sweep["by_type"]),
+            "never_raises_examples": json.dumps(sweep["examples"]),
+            "never_raises_slowest_episode": json.dumps(sweep["slowest"]), "never_raises_code_version": version}
+
+
 def only_never_raises(seeds: int, workers: int) -> None:
     """Re-run the sweep alone and update its keys in the committed JSON (the catastrophic
     figures keep the revision they were measured on, ``code_version``)."""
@@ -118,15 +126,7 @@ def only_never_raises(seeds: int, workers: int) -> None:
     results = json.loads(path.read_text()) if path.exists() else {}
     for key in ("date", "machine", "quick", "never_raises_status"):
         results.pop(key, None)
-    results.update({
-        "never_raises_seeds": seeds,
-        "never_raises_exceptions": sweep["exceptions"],
-        "never_raises_by_type": json.dumps(sweep["by_type"]),
-        "never_raises_examples": json.dumps(sweep["examples"]),
-        "never_raises_slowest_episode": json.dumps(sweep["slowest"]),
-        "never_raises_code_version": version,
-        "never_raises_wall_s": round(time.perf_counter() - t0, 1),
-    })
+    results.update(sweep_keys(sweep, seeds, version), never_raises_wall_s=round(time.perf_counter() - t0, 1))
     print(f"never raises: {sweep['exceptions']} exceptions over {seeds} seeds {sweep['by_type'] or ''}; "
           f"slowest episode {sweep['slowest']}")
     write_results("bench_episodes", results, False)
@@ -190,14 +190,7 @@ def main() -> None:
                     kept.get("code_version"))
     else:
         sweep = never_raises(seeds, args.workers)
-        results.update({
-            "never_raises_seeds": seeds,
-            "never_raises_exceptions": sweep["exceptions"],
-            "never_raises_by_type": json.dumps(sweep["by_type"]),
-            "never_raises_examples": json.dumps(sweep["examples"]),
-            "never_raises_slowest_episode": json.dumps(sweep["slowest"]),
-            "never_raises_code_version": version,
-        })
+        results.update(sweep_keys(sweep, seeds, version))
     print(f"{'interval':>8} {'default rate':>13} {'95% CI':>15} {'median m':>9} {'free-motion rate':>17}"
           + (f" {'before (' + args.before + ')':>16}" if old else ""))
     for k in INTERVALS:
