@@ -362,7 +362,7 @@ def track_tags_2d(anchors, previous, ranges_m, range_var_m2, anchor_covariance=N
     s = ranges_m.shape[0]
     anchors = np.ascontiguousarray(anchors, dtype=np.float64)
     previous = np.ascontiguousarray(previous, dtype=np.float64)
-    var = np.ascontiguousarray(np.broadcast_to(np.asarray(range_var_m2, dtype=np.float64).reshape(-1), (s,)))
+    var = _per_group(range_var_m2, s)
     use_cov = anchor_covariance is not None
     cov = np.ascontiguousarray(anchor_covariance, dtype=np.float64) if use_cov else _NO_COVARIANCE
     if loss not in LOSS_CODES:
@@ -371,6 +371,18 @@ def track_tags_2d(anchors, previous, ranges_m, range_var_m2, anchor_covariance=N
 
 
 _NO_COVARIANCE = np.zeros((0, 0, 2, 2))
+
+
+def _per_group(value, groups: int) -> np.ndarray:
+    """A range variance given as a scalar or one per group ((S,) or (S, 1, 1)) as (S,) floats."""
+    if isinstance(value, float | int):
+        return np.full(groups, float(value))
+    v = np.asarray(value, dtype=np.float64).reshape(-1)
+    if v.size == 1:
+        return np.full(groups, v[0])
+    if v.size != groups:
+        raise ValueError(f"range_var_m2: expected a scalar or {groups} values, got shape {np.shape(value)}")
+    return np.ascontiguousarray(v)
 
 
 # Per-tag verdicts of the tracker (``check_mirror_2d``).
@@ -401,7 +413,7 @@ def check_mirror_2d(anchors, positions, ranges_m, range_var_m2, anchor_covarianc
     positions = np.ascontiguousarray(positions, dtype=np.float64)
     ranges_m = np.ascontiguousarray(ranges_m, dtype=np.float64)
     s = positions.shape[0]
-    var = np.ascontiguousarray(np.broadcast_to(np.asarray(range_var_m2, dtype=np.float64).reshape(-1), (s,)))
+    var = _per_group(range_var_m2, s)
     use_cov = anchor_covariance is not None
     cov = np.ascontiguousarray(anchor_covariance, dtype=np.float64) if use_cov else _NO_COVARIANCE
     if loss not in LOSS_CODES:
