@@ -23,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from uwb_env.config import EnvConfig
+from uwb_env.features import anchor_features
 from uwb_env.localization import calibrate_anchors
 from uwb_env.localization._tracking_kernel import residual_statistics
 from uwb_env.localization.alignment import rigid_align_batch
@@ -360,27 +361,15 @@ class BatchedSystem:
 
     # -- observations and metrics --------------------------------------------------------------------
     def features(self) -> np.ndarray:
-        """(B, N, 2 + 8) float32 features, the single env's fields, clipped into its bounds."""
-        B, N = self.B, self.N
-        w = self.config.residual_window_steps
-        filled = np.minimum(self._hist, w)
-        idx = np.arange(w)[None, :] < filled[:, None]
-        tag_res = np.where(idx, self._tag_res, 0.0).sum(1) / np.maximum(filled, 1)
-        own = np.where(idx[..., None], self._anchor_res, 0.0).sum(1) / np.maximum(filled, 1)[:, None]
-        f = np.empty((B, N, self.obs_size), dtype=np.float32)
-        f[..., :2] = self.anchors_est
-        f[..., 2] = self.time_since_calibration_s
-        f[..., 3] = np.sqrt(self.predicted_anchor_var_m2())
-        f[..., 4] = np.sqrt(self.calibration_var_m2)
-        f[..., 5] = self.last_calibration_rms_m[:, None]
-        f[..., 6] = tag_res[:, None]
-        f[..., 7] = own
-        progress = np.zeros(B)
+        """(B, N, 2 + 8) float32 features, the single env's fields and kernel
+        (``features.anchor_features``), clipped into its bounds."""
+        progress = np.zeros(self.B)
         for cohort in self._cohorts.values():
             progress[cohort.copies] = cohort.progress
-        f[..., 8] = (self._cohort_of >= 0)[:, None]
-        f[..., 9] = progress[:, None]
-        return np.clip(f, self.obs_low, self.obs_high)
+        return anchor_features(self.anchors_est, self.time_since_calibration_s, self.predicted_anchor_var_m2(),
+                               self.calibration_var_m2, self.last_calibration_rms_m, self._tag_res, self._anchor_res,
+                               np.minimum(self._hist, self.config.residual_window_steps).astype(np.int64),
+                               (self._cohort_of >= 0).astype(np.float64), progress, self.obs_low, self.obs_high)
 
     def errors_m(self) -> tuple[np.ndarray, np.ndarray]:
         """(B, N) anchor and (B, M) tag errors after each copy's rigid constellation alignment

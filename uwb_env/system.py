@@ -19,6 +19,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from uwb_env.config import EnvConfig
+from uwb_env.features import anchor_features
 from uwb_env.localization import LocalizationError, calibrate_anchors, locate_tags, rigid_align
 from uwb_env.localization._tracking_kernel import residual_statistics
 from uwb_env.localization.multilateration import (
@@ -450,26 +451,17 @@ class LocalizationSystem:
 
     # -- features and metrics ----------------------------------------------------------------------
     def anchor_features(self) -> np.ndarray:
-        """(n_anchors, dim + len(OBS_FIELDS)) float32 features, clipped to the declared bounds."""
+        """(n_anchors, dim + len(OBS_FIELDS)) float32 features, clipped to the declared bounds
+        (the batched env's kernel, ``features.anchor_features``, for a batch of one)."""
         world = self.world
-        filled = min(self._hist_index, self.config.residual_window_steps)
         rnd = world.round
-        if filled:
-            tag_res = float(_sum(self._tag_residual_hist[:filled])) / filled
-            own_res = (_sum(self._anchor_residual_hist[:filled], 0) * (1.0 / filled)).tolist()
-        else:
-            tag_res, own_res = 0.0, [0.0] * self.n_anchors
-        shared = (self.last_calibration_rms_m, tag_res)
-        status = (float(rnd is not None), rnd.progress if rnd is not None else 0.0)
-        # A few dozen numbers: Python lists and one conversion beat a dozen column writes.
-        columns = zip(world.anchors_est.tolist(), self.time_since_calibration_s.tolist(),
-                      self.predicted_anchor_var_m2().tolist(), self.calibration_var_m2.tolist(), own_res, strict=True)
-        rows = [[*pos, t, math.sqrt(max(p, 0.0)), math.sqrt(max(c, 0.0)), *shared, own, *status]
-                for pos, t, p, c, own in columns]
-        feats = np.array(rows, dtype=np.float32)
         low, high = self._bounds
-        np.minimum(feats, high, out=feats)
-        return np.maximum(feats, low, out=feats)
+        return anchor_features(
+            world.anchors_est[None], self.time_since_calibration_s[None], self.predicted_anchor_var_m2()[None],
+            self.calibration_var_m2[None], np.array([self.last_calibration_rms_m], dtype=np.float64),
+            self._tag_residual_hist[None], self._anchor_residual_hist[None],
+            np.array([min(self._hist_index, self.config.residual_window_steps)], dtype=np.int64),
+            np.array([float(rnd is not None)]), np.array([rnd.progress if rnd is not None else 0.0]), low, high)[0]
 
     def feature_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         size, cap = self.config.sim.area_size_m, self.config.error_cap_m
