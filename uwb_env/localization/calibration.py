@@ -492,8 +492,12 @@ class _Problem:
         h = np.einsum("pa,pab,pb->p", u, block, u)
         gain = z**2 / np.maximum(1.0 - h, 1e-3)
         gain = np.sort(gain[z < 0])[::-1][:max_drops]  # only too-long pairs are dropped
-        threshold = float(chdtri(best.dof - max_drops, self.fit_alpha))
-        return float(gain.sum()) >= best.chi2 - threshold
+        if not len(gain):
+            return False
+        # after k drops the test's threshold is lower by about one per dof: any k may pass
+        k = np.arange(1, len(gain) + 1)
+        threshold = chdtri(best.dof - k, self.fit_alpha)
+        return bool(np.any(np.cumsum(gain) >= best.chi2 - threshold))
 
     def reject_outliers(self, refs, best: _Candidate, tries: int = 1, max_fraction: float = 0.4) -> _Candidate:
         """Drop one pair at a time while the fit fails and the shape stays rigid.
