@@ -143,6 +143,14 @@ def _cholesky_solve(mat, rhs, low, out):
 
 
 @njit(cache=True)
+def _work_buffers(npairs, dim, m):
+    """Residuals and unit vectors (current and trial), normal equations, Cholesky factor,
+    right-hand side, step and scratch of one solve: allocated once, reused every iteration."""
+    return (np.empty(npairs), np.empty((npairs, dim)), np.empty(npairs), np.empty((npairs, dim)), np.empty((m, m)),
+            np.zeros((m, m)), np.empty(m), np.empty(m), np.empty((3, dim)))
+
+
+@njit(cache=True)
 def lm_pairs(x0, pi, pj, column, n_free, dist, sqrt_iv, code, c, max_iterations, xtol2, ftol):
     """Minimize 0.5 * sum rho(z_p^2) over the free coordinates (``pair_solver.solve_pair_ranges``).
 
@@ -152,16 +160,8 @@ def lm_pairs(x0, pi, pj, column, n_free, dist, sqrt_iv, code, c, max_iterations,
     m = n_free + 1
     x = x0.copy()
     trial = np.empty_like(x)
-    z = np.empty(npairs)
-    u = np.empty((npairs, dim))
-    z_new = np.empty(npairs)
-    u_new = np.empty((npairs, dim))
-    a_mat = np.empty((m, m))
+    z, u, z_new, u_new, a_mat, low, g, step, scratch = _work_buffers(npairs, dim, m)
     damped = np.empty((m, m))
-    low = np.zeros((m, m))
-    g = np.empty(m)
-    step = np.empty(m)
-    scratch = np.empty((3, dim))
     _evaluate(x, pi, pj, dist, sqrt_iv, z, u)
     cost = _cost(z, code, c)
     cost_new = cost
@@ -247,15 +247,7 @@ def gauss_newton_teams(x0, pi, pj, dist, sqrt_iv, column, n_free, code, c, max_i
     x = x0.copy()
     ok = ok.copy()
     trial = np.empty((n, dim))
-    z = np.empty(npairs)
-    u = np.empty((npairs, dim))
-    z_new = np.empty(npairs)
-    u_new = np.empty((npairs, dim))
-    a_mat = np.empty((m, m))
-    low = np.zeros((m, m))
-    g = np.empty(m)
-    step = np.empty(m)
-    scratch = np.empty((3, dim))
+    z, u, z_new, u_new, a_mat, low, g, step, scratch = _work_buffers(npairs, dim, m)
     for k in range(k_teams):
         if not ok[k]:
             continue

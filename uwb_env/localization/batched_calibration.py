@@ -237,9 +237,9 @@ def _solve_group(pairs, dist, var, prior, b, loss, f_scale, gauge, max_iteration
     x, ok = paper_frame_2d_batch(prior, b)
     i, j = pairs[:, 0], pairs[:, 1]
     sqrt_iv = 1.0 / np.sqrt(var)
-    x, ok, _ = _gauss_newton(x, i, j, dist, sqrt_iv, free, "linear", 1.0, max_iterations, 1e-3, ok)
+    x, ok = _gauss_newton(x, i, j, dist, sqrt_iv, free, "linear", 1.0, max_iterations, 1e-3, ok)
     if loss != "linear":  # the robust stage from the plain solution, 4x the budget (linear convergence)
-        x, ok, _ = _gauss_newton(x, i, j, dist, sqrt_iv, free, loss, f_scale, 4 * max_iterations, 1e-4, ok)
+        x, ok = _gauss_newton(x, i, j, dist, sqrt_iv, free, loss, f_scale, 4 * max_iterations, 1e-4, ok)
     res, _ = _residuals(x, i, j, dist)
     z = res * sqrt_iv
     chi2 = (z * z).sum(1)
@@ -310,7 +310,7 @@ def _gauss_newton(x, i, j, dist, sqrt_iv, free, loss, f_scale, max_iterations, x
                                np.ascontiguousarray(j, dtype=np.int64), np.ascontiguousarray(dist, dtype=np.float64),
                                np.ascontiguousarray(sqrt_iv, dtype=np.float64), column, n_free, LOSS_CODES[loss],
                                float(f_scale), int(max_iterations), float(xtol_sigma), np.asarray(ok, dtype=bool))
-    return x, ok, None
+    return x, ok
 
 
 def _cost(z, loss, f_scale):

@@ -338,7 +338,7 @@ def refit_stuck_tags_2d(anchors, ranges_m, positions, rms, threshold_m, range_va
 def track_tags_2d(anchors, previous, ranges_m, range_var_m2, anchor_covariance=None, loss="linear", f_scale=2.0,
                   iterations=2):
     """Warm-started planar Gauss-Newton for tracking: many groups of tags, each group against
-    its own anchors, in a few numpy calls per iteration (the environments' hot path).
+    its own anchors (the environments' hot path).
 
     One compiled loop (``_tracking_kernel``) for one env's tags and for thousands of copies:
     per tag and iteration the 2x2 normal equations A = sum w u u^T, g = sum w u r (unit vectors
@@ -359,30 +359,30 @@ def track_tags_2d(anchors, previous, ranges_m, range_var_m2, anchor_covariance=N
         NaN where fewer than 3 ranges, not finite, or (residuals) the range is missing.
     """
     ranges_m = np.ascontiguousarray(ranges_m, dtype=np.float64)
-    s = ranges_m.shape[0]
-    anchors = np.ascontiguousarray(anchors, dtype=np.float64)
-    previous = np.ascontiguousarray(previous, dtype=np.float64)
-    var = _per_group(range_var_m2, s)
-    use_cov = anchor_covariance is not None
-    cov = np.ascontiguousarray(anchor_covariance, dtype=np.float64) if use_cov else _NO_COVARIANCE
-    if loss not in LOSS_CODES:
-        check_loss(loss)
-    return track_2d(anchors, previous, ranges_m, var, cov, use_cov, LOSS_CODES[loss], float(f_scale), int(iterations))
+    return track_2d(np.ascontiguousarray(anchors, dtype=np.float64), np.ascontiguousarray(previous, dtype=np.float64),
+                    ranges_m, *_kernel_options(range_var_m2, anchor_covariance, loss, f_scale, len(ranges_m)),
+                    int(iterations))
 
 
 _NO_COVARIANCE = np.zeros((0, 0, 2, 2))
 
 
-def _per_group(value, groups: int) -> np.ndarray:
-    """A range variance given as a scalar or one per group ((S,) or (S, 1, 1)) as (S,) floats."""
-    if isinstance(value, float | int):
-        return np.full(groups, float(value))
-    v = np.asarray(value, dtype=np.float64).reshape(-1)
-    if v.size == 1:
-        return np.full(groups, v[0])
-    if v.size != groups:
-        raise ValueError(f"range_var_m2: expected a scalar or {groups} values, got shape {np.shape(value)}")
-    return np.ascontiguousarray(v)
+def _kernel_options(range_var_m2, anchor_covariance, loss, f_scale, groups: int) -> tuple:
+    """The tracking kernels' shared arguments: the range variance per group ((S,) floats, from
+    a scalar or one per group ((S,) or (S, 1, 1))), the anchor covariance and whether it is
+    used, the loss code and its scale."""
+    if isinstance(range_var_m2, float | int):
+        var = np.full(groups, float(range_var_m2))
+    else:
+        v = np.asarray(range_var_m2, dtype=np.float64).reshape(-1)
+        if v.size not in (1, groups):
+            raise ValueError(f"range_var_m2: expected a scalar or {groups} values, got shape {np.shape(range_var_m2)}")
+        var = np.full(groups, v[0]) if v.size == 1 else np.ascontiguousarray(v)
+    use_cov = anchor_covariance is not None
+    cov = np.ascontiguousarray(anchor_covariance, dtype=np.float64) if use_cov else _NO_COVARIANCE
+    if loss not in LOSS_CODES:
+        check_loss(loss)
+    return var, cov, use_cov, LOSS_CODES[loss], float(f_scale)
 
 
 # Per-tag verdicts of the tracker (``check_mirror_2d``).
@@ -411,15 +411,10 @@ def check_mirror_2d(anchors, positions, ranges_m, range_var_m2, anchor_covarianc
     (S, M) int8, switched (S, M) bool.
     """
     positions = np.ascontiguousarray(positions, dtype=np.float64)
-    ranges_m = np.ascontiguousarray(ranges_m, dtype=np.float64)
-    s = positions.shape[0]
-    var = _per_group(range_var_m2, s)
-    use_cov = anchor_covariance is not None
-    cov = np.ascontiguousarray(anchor_covariance, dtype=np.float64) if use_cov else _NO_COVARIANCE
-    if loss not in LOSS_CODES:
-        check_loss(loss)
-    return mirror_check_2d(np.ascontiguousarray(anchors, dtype=np.float64), positions, ranges_m, var, cov, use_cov,
-                           LOSS_CODES[loss], float(f_scale), float(margin_chi2), int(iterations))
+    return mirror_check_2d(np.ascontiguousarray(anchors, dtype=np.float64), positions,
+                           np.ascontiguousarray(ranges_m, dtype=np.float64),
+                           *_kernel_options(range_var_m2, anchor_covariance, loss, f_scale, len(positions)),
+                           float(margin_chi2), int(iterations))
 
 
 def check_mirror_3d(anchors, positions, ranges_m, range_var_m2, anchor_covariance=None, loss="linear", f_scale=2.0,
