@@ -57,3 +57,41 @@ def test_slip_phases_make_drift_vary_over_time(rng):
     base = cfg.noise_std_m_per_sqrt_m * np.sqrt(0.1)
     assert (errs > 5 * base).mean() > 0.05  # ~17 % of steps slip (rate 0.1/s, 2 s each)
     assert np.median(errs) < 3 * base  # most are not
+
+
+def _drift_after_reset(cfg: OdometryConfig, rng, n=6000, before_steps=150, after_steps=100, dt=0.2):
+    """Robots drive curvy paths; 'calibrate' after ``before_steps`` (the estimate is reset to the
+    truth, the heading error is not: a position fix does not observe it) and return the measured
+    drift variance after ``after_steps`` more, with the model's prediction from what the robots
+    measured (distance, heading variance then and now)."""
+    model = OdometryModel(cfg)
+    model.reset(n, rng)
+    heading = rng.uniform(-np.pi, np.pi, n)
+
+    def drive(steps):
+        nonlocal heading
+        err, dist = np.zeros((n, 2)), np.zeros(n)
+        for _ in range(steps):
+            turn = 0.3 * rng.standard_normal(n)
+            heading = heading + turn
+            step_m = 0.5 * dt
+            delta = step_m * np.column_stack([np.cos(heading), np.sin(heading)])
+            err += model.estimated_displacement(delta, np.abs(turn), dt, rng) - delta
+            dist += step_m
+        return err, dist
+
+    drive(before_steps)
+    model.restart_drift()
+    err, _ = drive(after_steps)
+    return (err * err).sum(1).mean(), model.expected_drift_var_m2(2).mean()
+
+
+@pytest.mark.parametrize("slips", [False, True])
+def test_predicted_drift_variance_matches_the_simulated_drift(rng, slips):
+    # The predicted variance feeds the calibration priors, the relocation's weights of the other
+    # anchors and the schedulers' features: it must say how far the estimates really drift,
+    # including the heading error carried across calibrations and the slips in expectation.
+    cfg = OdometryConfig(model="distance", yaw_noise_std_rad_per_sqrt_m=0.03, yaw_noise_std_rad_per_rad=0.03,
+                         slip_rate_per_s=0.05 if slips else 0.0, slip_duration_s=4.0, slip_noise_multiplier=4.0)
+    measured, predicted = _drift_after_reset(cfg, rng)
+    assert predicted == pytest.approx(measured, rel=0.12)

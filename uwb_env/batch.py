@@ -282,6 +282,7 @@ class BatchedSystem:
         self.time_since_calibration_s[ks] = 0.0
         self.distance_since_calibration_m[ks] = 0.0
         self.steps_since_calibration[ks] = 0
+        self._restart_drift(ks)
         self._hist[ks] = 0
 
     def _apply(self, k: int, result, since_mid: np.ndarray) -> None:
@@ -295,17 +296,20 @@ class BatchedSystem:
         self.time_since_calibration_s[k] = 0.0
         self.distance_since_calibration_m[k] = 0.0
         self.steps_since_calibration[k] = 0
+        self._restart_drift(k)
         self._hist[k] = 0
 
     # -- tags --------------------------------------------------------------------------------------
+    def _restart_drift(self, copies) -> None:
+        mask = np.zeros(self.B, dtype=bool)
+        mask[copies] = True
+        self.odometry.restart_drift(np.repeat(mask, self.N))
+
     def predicted_anchor_var_m2(self) -> np.ndarray:
-        drift = self.odometry.expected_error_var_m2(self.distance_since_calibration_m, self.steps_since_calibration, 2)
-        return self.calibration_var_m2 + drift
+        return self.calibration_var_m2 + self.odometry.expected_drift_var_m2(2).reshape(self.B, self.N)
 
     def _predicted_var_of(self, k: int) -> np.ndarray:
-        drift = self.odometry.expected_error_var_m2(self.distance_since_calibration_m[k],
-                                                    self.steps_since_calibration[k], 2)
-        return self.calibration_var_m2[k] + drift
+        return self.calibration_var_m2[k] + self.odometry.expected_drift_var_m2(2, slice(k * self.N, (k + 1) * self.N))
 
     def _fix_tags(self, copies: np.ndarray, cold: bool = False) -> None:
         if self.M == 0 or not copies.any():

@@ -333,6 +333,7 @@ class LocalizationSystem:
         self.time_since_calibration_s[i] = 0.0
         self.distance_since_calibration_m[i] = 0.0
         self.steps_since_calibration[i] = 0
+        self.world.odometry.restart_drift(i)
         return None
 
     def _predicted_covariance(self) -> np.ndarray:
@@ -356,15 +357,15 @@ class LocalizationSystem:
         self.time_since_calibration_s[:] = 0.0
         self.distance_since_calibration_m[:] = 0.0
         self.steps_since_calibration[:] = 0
+        self.world.odometry.restart_drift()
         # Residuals of fixes against the old estimates say nothing about the new ones.
         self._hist_index = 0
 
     # -- tags ------------------------------------------------------------------------------------
     def predicted_anchor_var_m2(self) -> np.ndarray:
         """Each anchor's predicted position error variance: calibration + drift model."""
-        drift = self.world.odometry.expected_error_var_m2
-        return self._cached("predicted_var", lambda: self.calibration_var_m2 + drift(
-            self.distance_since_calibration_m, self.steps_since_calibration, self.dim))
+        odometry = self.world.odometry
+        return self._cached("predicted_var", lambda: self.calibration_var_m2 + odometry.expected_drift_var_m2(self.dim))
 
     def _fix_tags(self) -> None:
         if self.n_tags == 0:

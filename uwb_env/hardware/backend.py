@@ -170,7 +170,9 @@ class HardwareWorld(RoundRunner):
             if wait > 0:
                 time.sleep(wait)
         if self.odometry_source is not None:
-            self.anchors_est += np.asarray(self.odometry_source(self.dt_s), dtype=float)
+            moved = np.asarray(self.odometry_source(self.dt_s), dtype=float)
+            self.anchors_est += moved
+            self.odometry.note_motion(moved)
         self.step_count += 1
         self.time_s = self.step_count * self.dt_s
         for tag in self.tags:

@@ -32,6 +32,20 @@ class OdometryModel:
         self._any_slip = False
         self._yaw_var_per_m = cfg.yaw_noise_std_rad_per_sqrt_m**2
         self._yaw_var_per_rad = cfg.yaw_noise_std_rad_per_rad**2
+        # What each robot can predict of its own drift from what it measured and its
+        # configuration (see expected_drift_var_m2): the heading error's variance (slips in
+        # expectation; a position calibration does not observe heading, so it keeps growing
+        # across calibrations) and, since the last restart_drift: the distance, the steps, the
+        # net displacement P (complex, planar) and the sums A = sum dv_k, B = sum dv_k P_k,
+        # C = sum dv_k |P_k|^2 over the heading-variance increments dv_k.
+        self.heading_var_rad2 = np.zeros(n)
+        self._h0 = np.zeros(n)
+        self._dist = np.zeros(n)
+        self._steps = np.zeros(n)
+        self._net = np.zeros(n, dtype=complex)
+        self._sum_a = np.zeros(n)
+        self._sum_b = np.zeros(n, dtype=complex)
+        self._sum_c = np.zeros(n)
 
     def estimated_displacement(
         self, delta: np.ndarray, turn_rad: np.ndarray, dt_s: float, rng: np.random.Generator
@@ -42,6 +56,7 @@ class OdometryModel:
         if self._uniform:
             # Paper: U(-e, e) added to every axis of the estimate every step.
             e = cfg.uniform_error_m
+            self._steps += 1
             return delta + rng.uniform(-e, e, (n, dim))
         # 4n normals: [0, 2n) complex white noise, [2n, 3n) yaw increments, [3n, 4n) slip starts.
         noise = rng.standard_normal(4 * n)
@@ -65,6 +80,7 @@ class OdometryModel:
         self.yaw_error_rad = self.yaw_error_rad + (yaw_step if gain is None else gain * yaw_step)
         white = (cfg.noise_std_m_per_sqrt_m if gain is None else gain * cfg.noise_std_m_per_sqrt_m) * np.sqrt(dist)
         est = self.scale * np.exp(1j * self.yaw_error_rad) * d + white * noise[: 2 * n].view(np.complex128)
+        self._accumulate(est, yaw_var)
         planar = est.view(np.float64).reshape(n, 2)
         if dim == 2:
             return planar
@@ -72,20 +88,61 @@ class OdometryModel:
         out[:, :2] = planar
         return out
 
-    def expected_error_var_m2(self, distance_m: np.ndarray, steps: np.ndarray, dim: int = 2) -> np.ndarray:
-        """Nominal variance (summed over axes) of the drift accumulated since a reset of the
-        estimate, given the distance travelled and the steps taken: what a robot can predict
-        about its own error from its configuration (slip phases not included).
+    def _accumulate(self, measured: np.ndarray, yaw_var: np.ndarray) -> None:
+        """One step of what the robot measured: planar displacement (complex), the nominal
+        variance of its heading increment (applied before this step's displacement)."""
+        dv = self.expected_slip_gain2 * yaw_var
+        self.heading_var_rad2 = self.heading_var_rad2 + dv
+        p = self._net
+        self._sum_a = self._sum_a + dv
+        self._sum_b = self._sum_b + dv * p
+        self._sum_c = self._sum_c + dv * (p.real * p.real + p.imag * p.imag)
+        self._net = p + measured
+        self._dist = self._dist + np.abs(measured)
+        self._steps += 1
 
-        uniform: steps * dim * e^2 / 3. distance: white noise sigma_w^2 d, scale error
-        s^2 d^2, and the yaw random walk, whose integrated position effect is ~ sigma_y^2 d^3 / 3.
+    def note_motion(self, displacement: np.ndarray) -> None:
+        """Account for motion measured elsewhere (hardware odometry), (n, dim) per step."""
+        if self._uniform:
+            self._steps += 1
+            return
+        planar = np.ascontiguousarray(np.asarray(displacement, dtype=float)[:, :2]).view(np.complex128)[:, 0]
+        self._accumulate(planar, self._yaw_var_per_m * np.abs(planar))
+
+    def restart_drift(self, robots=slice(None)) -> None:
+        """The estimates of ``robots`` (an index or mask) were just reset by a calibration."""
+        self._h0[robots] = self.heading_var_rad2[robots]
+        for name in ("_dist", "_steps", "_net", "_sum_a", "_sum_b", "_sum_c"):
+            getattr(self, name)[robots] = 0.0
+
+    def expected_drift_var_m2(self, dim: int = 2, robots=slice(None)) -> np.ndarray:
+        """(n,) (or of ``robots``, an index) expected variance (summed over axes) of each robot's drift since its last
+        :meth:`restart_drift`, from what it measured and its configuration.
+
+        uniform: steps * dim * e^2 / 3. distance, with P the net displacement since the
+        restart and d the path length: white noise g 2 sigma_w^2 d (g: slips in expectation,
+        :attr:`expected_slip_gain2`); scale error s^2 |P|^2; the heading error from before the
+        restart, v0 |P|^2; and each heading increment since (variance dv_k, at P_k) turning the
+        rest of the path, sum dv_k |P - P_k|^2 = A |P|^2 - 2 Re(P conj B) + C (a straight path
+        of length d gives g sigma_y^2 d^3 / 3). Small-angle, first order.
         """
         cfg = self.config
         if self._uniform:
-            return steps * dim * cfg.uniform_error_m**2 / 3.0
-        d = np.asarray(distance_m, dtype=float)
-        # 2 sigma_w^2 d + s^2 d^2 + sigma_y^2 d^3 / 3, in Horner form (fewer array operations)
-        c1, c2 = 2 * cfg.noise_std_m_per_sqrt_m**2, cfg.scale_error_std**2
-        c3 = cfg.yaw_noise_std_rad_per_sqrt_m**2 / 3.0
-        return d * (c1 + d * (c2 + c3 * d))
+            return self._steps[robots] * dim * cfg.uniform_error_m**2 / 3.0
+        p, b = self._net[robots], self._sum_b[robots]
+        p2 = p.real * p.real + p.imag * p.imag
+        cross = p.real * b.real + p.imag * b.imag
+        white = 2 * cfg.noise_std_m_per_sqrt_m**2 * self.expected_slip_gain2 * self._dist[robots]
+        heading = (cfg.scale_error_std**2 + self._h0[robots] + self._sum_a[robots]) * p2 - 2 * cross + self._sum_c[robots]
+        return white + np.maximum(heading, 0.0)
+
+    @property
+    def expected_slip_gain2(self) -> float:
+        """E[gain^2] of the noise over time: slips start at ``slip_rate_per_s`` while not slipping
+        and last ``slip_duration_s``, so a fraction f = rT / (1 + rT) of the time is spent slipping
+        with the noise multiplied by m; the variance grows by 1 + f (m^2 - 1) on average. A robot
+        cannot see its slips (they are what calibration is for), but it can expect them."""
+        cfg = self.config
+        rt = cfg.slip_rate_per_s * cfg.slip_duration_s
+        return 1.0 + rt / (1.0 + rt) * (cfg.slip_noise_multiplier**2 - 1.0)
 
