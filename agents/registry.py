@@ -6,6 +6,7 @@ all build policies from specs so that a result row names exactly what ran.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from pathlib import Path
 
@@ -32,6 +33,13 @@ def _learned(path: str, dt_s: float):
 
     if "/" not in path and not path.endswith(".zip"):  # a shipped model's name
         path = str(shipped_model(path))
+    record = Path(path).with_name("run.json")
+    if record.is_file() and json.loads(record.read_text()).get("env") == "anchor_set":
+        from uwb_env.agents.anchor_set import AnchorSetPolicy
+
+        policy = AnchorSetPolicy.load(path)  # any team size; per_anchor actions
+        policy.dt_s = dt_s
+        return policy
     return LearnedPolicy.load(path)
 
 

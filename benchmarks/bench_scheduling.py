@@ -1,25 +1,30 @@
-"""Does a learned scheduler beat the fixed-interval trade-off curve?
+"""Does the learned per-anchor scheduler beat the best tuned heuristic? The protocol, on the suite.
 
-Trains PPO on the centralized scheduler env (default dynamic scenario) within a wall-clock
-budget on this machine, then evaluates it on held-out seeds beside the fixed-interval sweep,
-the threshold heuristics and the (ground-truth) oracle. The fixed-interval curve is
-interpolated at the learned policy's calibration rate (error at matched rate), and inverted
-at its error (rate needed by a fixed interval to match it). Also measures DummyVecEnv vs
-SubprocVecEnv throughput.
+For every scenario of the suite (training/scenarios/suite/suite.yml, held-out ones included):
 
-Writes benchmarks/results/bench_scheduling.json and the evaluation into ``--out`` and ships
-the model in agents/models/ when it is under 5 MB. ``--quick`` ends within a minute.
+1. tunes the deployable heuristic families (fixed interval, team uncertainty threshold, and
+   the per-anchor threshold that uses the same per-anchor actions as the learned policy) on
+   the scenario's validation seeds, for the env's return (the learned policy's objective): a
+   grid, then one bisection round around each family's best;
+2. runs the best tuned heuristic and the learned scheduler (one model for every scenario and
+   team size; the training seed with the best validation score) on >= 100 test seeds;
+3. reports IQM / median tag error with 95 % bootstrap CIs, the catastrophic rate, the time
+   spent calibrating, and the paired IQM difference learned - heuristic with its CI.
 
-Its comparison (24 seeds, means, an untuned curve) is a training check, not a verdict: whether
-a learned scheduler beats the tuned heuristics is measured by ``bench_protocol.py`` (the
-evaluation protocol: >= 100 test seeds, IQM with bootstrap CIs, paired differences, tuned
-baselines), whose results are in docs/results/scheduling/.
+On the default scenario it also runs the other training seeds' models (the spread across
+training seeds) and the ground-truth lookahead planner (the reference from above: the gap
+closed). Training is ``training/train_anchor_set.py`` (``--models`` names its outputs).
+
+Writes benchmarks/results/bench_scheduling.json (``--quick``: bench_scheduling_quick.json, a
+smoke run on 3 scenarios, few seeds, short episodes) and docs/results/scheduling/
+(suite.csv, table.md, plots) unless ``--quick``.
 """
 
 from __future__ import annotations
 
 import argparse
-import shutil
+import csv
+import json
 import sys
 import time
 from pathlib import Path
@@ -29,131 +34,216 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks._common import print_table, write_results  # noqa: E402
+from benchmarks.bench_protocol import code_version  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-MODEL_DIR = ROOT / "agents" / "models"  # shipped: agents/models/ppo_scheduler/model.zip
+DOCS = ROOT / "docs" / "results" / "scheduling"
+# Deployable families and their grids (the per-anchor family uses the learned policy's actions).
+GRIDS = {
+    "fixed": (10, 20, 40, 80, 160),
+    "threshold": (0.06, 0.12, 0.25, 0.5, 1.0),
+    "per_anchor_threshold": (0.08, 0.15, 0.3, 0.6, 1.2),
+}
+INTEGER = {"fixed"}
 
 
-def vec_env_throughput(kind: str, steps: int) -> float:
-    """Env steps/s of the training VecEnv alone (8 copies; the batched mode with 32)."""
-    from uwb_env.training.train import make_vec_env
-
-    venv = make_vec_env("batched", 32, {}, 0) if kind == "batched" else make_vec_env("scheduler", 8, {}, 0, kind)
-    venv.reset()
-    n = steps // venv.num_envs
-    start = time.perf_counter()
-    for _ in range(n):
-        venv.step(np.zeros(venv.num_envs, dtype=np.int64))
-    rate = n * venv.num_envs / (time.perf_counter() - start)
-    venv.close()
-    return rate
+def spec_of(family: str, value: float) -> str:
+    return f"{family}:{int(round(value))}" if family in INTEGER else f"{family}:{value:.4g}"
 
 
-def fixed_curve(summary: list[dict]) -> tuple[np.ndarray, np.ndarray]:
-    pts = sorted((r["calibrations_per_min"], r["mean_tag_error_m"]) for r in summary
-                 if r["policy"].startswith("fixed:"))
-    rate, err = np.array(pts).T
-    return rate, err
+def tune_scenario(config: dict, seeds: list[int], workers: int, label: str) -> dict:
+    """Grid + one bisection round per family on validation seeds; returns the record."""
+    from uwb_env.training.evaluate import run_jobs
+
+    scores: dict[str, float] = {}
+
+    def run(specs):
+        specs = [s for s in dict.fromkeys(specs) if s not in scores]
+        episodes = run_jobs([(s, seed, config) for s in specs for seed in seeds], workers, label, show=False)
+        for s in specs:
+            scores[s] = float(np.mean([e["return"] for e in episodes if e["policy"] == s]))
+
+    run([spec_of(f, v) for f, grid in GRIDS.items() for v in grid])
+    refine = []
+    for f, grid in GRIDS.items():
+        values = sorted(grid)
+        i = int(np.argmax([scores[spec_of(f, v)] for v in values]))
+        for j in (i - 1, i + 1):
+            if 0 <= j < len(values):
+                mid = 0.5 * (values[i] + values[j]) if f in INTEGER else float(np.sqrt(values[i] * values[j]))
+                refine.append(spec_of(f, mid))
+    run(refine)
+    best_of = {f: max((s for s in scores if s.startswith(f + ":")), key=scores.get) for f in GRIDS}
+    best = max(best_of.values(), key=scores.get)
+    return {"best": best, "best_of_family": best_of, "validation_returns": scores,
+            "validation_seeds": [seeds[0], seeds[-1]]}
+
+
+def describe(errors: np.ndarray, calib: np.ndarray, rate: np.ndarray, returns: np.ndarray) -> dict:
+    from uwb_env.evaluation.stats import bootstrap_ci, catastrophic_rate
+
+    iqm, med, cat = bootstrap_ci(errors, "iqm"), bootstrap_ci(errors, "median"), catastrophic_rate(errors)
+    return {"iqm_m": iqm.value, "iqm_ci": [iqm.ci_low, iqm.ci_high], "median_m": med.value,
+            "median_ci": [med.ci_low, med.ci_high], "mean_m": float(errors.mean()),
+            "catastrophic_rate": cat.value, "catastrophic_ci_high": cat.ci_high,
+            "fraction_calibrating": float(calib.mean()), "calibrations_per_min": float(rate.mean()),
+            "return": float(returns.mean()), "n": int(errors.size)}
+
+
+def compare(learned: np.ndarray, heuristic: np.ndarray) -> dict:
+    """Paired by seed: IQM(learned) - IQM(heuristic) and the relative improvement (> 0: learned better)."""
+    from uwb_env.evaluation.stats import iqm, paired_difference, probability_of_improvement
+
+    diff = paired_difference(learned, heuristic, "iqm")
+    base = float(iqm(heuristic))
+    poi = probability_of_improvement(learned, heuristic)
+    return {"iqm_difference_m": diff.value, "iqm_difference_ci": [diff.ci_low, diff.ci_high],
+            "improvement": -diff.value / base, "improvement_ci": [-diff.ci_high / base, -diff.ci_low / base],
+            "significant": diff.excludes_zero(), "probability_of_improvement": poi.value}
+
+
+def arrays(episodes: list[dict], spec: str):
+    rows = sorted((e for e in episodes if e["policy"] == spec), key=lambda e: e["seed"])
+    return tuple(np.array([e[k] for e in rows]) for k in
+                 ("mean_tag_error_m", "fraction_calibrating", "calibrations_per_min", "return"))
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true")
-    p.add_argument("--budget-s", type=float, default=720.0, help="training wall-clock budget")
-    p.add_argument("--seeds", type=int, default=24, help="evaluation episodes per policy")
-    p.add_argument("--out", default=str(ROOT / "runs" / "bench_scheduling"))
-    p.add_argument("--mode", choices=("dummy", "subproc", "batched", "fastest"), default="dummy",
-                   help="training env mode (default: the scheduler env on DummyVecEnv)")
+    p.add_argument("--models", nargs="+", default=[str(ROOT / f"runs/anchor_set/seed{i}") for i in range(3)],
+                   help="training outputs (training/train_anchor_set.py --out); each one's best/ is used")
+    p.add_argument("--scenarios", nargs="*", default=None, help="default: the whole suite")
+    p.add_argument("--test-seeds", type=int, default=100)
+    p.add_argument("--val-seeds", type=int, default=10)
+    p.add_argument("--lookahead-seeds", type=int, default=100, help="0: skip the lookahead reference")
+    p.add_argument("--lookahead", default="lookahead", help="planner spec (default: on the tuned fixed "
+                   "interval K, branches cut at 2.5K steps: lookahead:2.5K@K)")
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--max-cycles", type=int, default=None, help="override every scenario's episode length")
     a = p.parse_args()
-    budget, seeds = (15.0, 2) if a.quick else (a.budget_s, a.seeds)
+    if a.quick:
+        a.test_seeds, a.val_seeds, a.lookahead_seeds, a.max_cycles = 6, 3, 2, 60
+        a.scenarios = a.scenarios or ["default", "three_anchors", "eight_anchors"]
 
-    from uwb_env.training import evaluate, train
+    from uwb_env.training.evaluate import run_jobs
+    from uwb_env.training.suite import load_suite
 
-    dummy = vec_env_throughput("dummy", 2000 if a.quick else 16000)
-    subproc = vec_env_throughput("subproc", 2000 if a.quick else 16000)
-    batched = vec_env_throughput("batched", 4000 if a.quick else 64000)
-    out = Path(a.out)
-    if out.exists():
-        shutil.rmtree(out)
-    # The committed result trained the scheduler env on DummyVecEnv (--mode dummy, the default);
-    # --mode fastest picks the fastest of the three (same observations and reward).
-    modes = {"dummy": (("scheduler", "dummy"), dummy), "subproc": (("scheduler", "subproc"), subproc),
-             "batched": (("batched", "dummy"), batched)}
-    fastest = (max(modes.values(), key=lambda item: item[1]) if a.mode == "fastest" else modes[a.mode])[0]
-    targs = train.Args(algo="ppo", env=fastest[0], total_timesteps=10_000_000, seed=0, out=str(out),
-                       vec_env=fastest[1], checkpoint_freq=50_000, eval_freq=50_000, eval_episodes=4,
-                       progress_bar=True, max_wall_s=budget)
-    record = train.main(targs)
-    # Model selection on the validation seeds (never the evaluation seeds): the EvalCallback's
-    # best checkpoint when it beat the final model there.
-    best = out / "best" / "best_model.zip"
-    use_best = best.exists() and record.get("best_eval_mean_reward", -1e18) > record.get("last_eval_mean_reward",
-                                                                                          -1e18)
-    model = best if use_best else out / "model.zip"
+    from uwb_env.evaluation.stats import gap_closed_fraction, iqm
 
-    eargs = evaluate.Args(policies=[f"learned:{model}", "fixed:10", "threshold:0.15", "residual:0.2", "oracle:0.3"],
-                          seeds=seeds, max_cycles=500, sweep=True, workers=2,
-                          out=str(out / "eval"),
-                          progress=True)
-    results = evaluate.main(eargs)
-    rows = {r["policy"]: r for r in results["summary"]}
-    learned = rows[f"learned:{model}"]
-    rate, err = fixed_curve(results["summary"])
-    fixed_at_rate = float(np.interp(learned["calibrations_per_min"], rate, err))
-    # The lowest rate at which the fixed-interval curve reaches the learned error (if any).
-    reach = rate[err <= learned["mean_tag_error_m"]]
-    fixed_rate_for_error = float(reach.min()) if len(reach) else float("nan")
-    error_gain = 1 - learned["mean_tag_error_m"] / fixed_at_rate
-    rate_saving = 1 - learned["calibrations_per_min"] / fixed_rate_for_error if len(reach) else float("nan")
-    met = bool(error_gain >= 0.20 or (np.isfinite(rate_saving) and rate_saving >= 0.30))
+    started = time.perf_counter()
+    models = []
+    for m in a.models:
+        summary = json.loads((Path(m) / "summary.json").read_text())
+        models.append({"path": str(Path(m) / "best" / "model.zip"), "seed": summary["seed"],
+                       "val_return": summary["best_val_return"], "wall_s": summary["wall_s"],
+                       "steps": summary["steps"]})
+    shipped = max(models, key=lambda m: m["val_return"])  # chosen on validation seeds
+    learned = f"learned:{shipped['path']}"
+    suite = load_suite()
+    names = a.scenarios or list(suite)
+    per_scenario = {}
+    for name in names:
+        sc = suite[name]
+        config = {**sc["config"], "max_cycles": a.max_cycles or sc["max_cycles"]}
+        v0, t0 = sc["seeds"]["validation"][0], sc["seeds"]["test"][0]
+        tuned = tune_scenario(config, list(range(v0, v0 + a.val_seeds)), a.workers, f"tune {name}")
+        best = tuned["best"]
+        specs = [best, learned]
+        if name == "default":
+            specs += [f"learned:{m['path']}" for m in models if m is not shipped]
+        seeds = list(range(t0, t0 + a.test_seeds))
+        episodes = run_jobs([(s, seed, config) for s in specs for seed in seeds], a.workers, f"test {name}", show=False)
+        h, lr = arrays(episodes, best), arrays(episodes, learned)
+        row = {"held_out": sc["held_out"], "best_heuristic": best, "tuning": tuned,
+               "heuristic": describe(*h), "learned": describe(*lr), "comparison": compare(lr[0], h[0]),
+               "test_seeds": [seeds[0], seeds[-1]]}
+        if name == "default":
+            row["learned_per_training_seed"] = {}
+            for m in models:
+                arr = arrays(episodes, f"learned:{m['path']}")
+                row["learned_per_training_seed"][m["seed"]] = {**describe(*arr), **compare(arr[0], h[0])}
+            if a.lookahead_seeds:
+                k = int(best.partition(":")[2]) if best.startswith("fixed:") else 60
+                spec = a.lookahead if a.lookahead != "lookahead" else f"lookahead:{min(max(int(2.5 * k), 60), 300)}@{k}"
+                la_seeds = seeds[: a.lookahead_seeds]
+                la = run_jobs([(spec, s, config) for s in la_seeds], a.workers, "lookahead", show=False)
+                la_err = arrays(la, spec)
+                n = len(la_seeds)
+                ref, heur_n, learn_n = float(iqm(la_err[0])), float(iqm(h[0][:n])), float(iqm(lr[0][:n]))
+                row["lookahead"] = {"spec": spec, **describe(*la_err),
+                                    "headroom": (heur_n - ref) / heur_n,
+                                    "gap_closed_fraction": gap_closed_fraction(heur_n, learn_n, ref)}
+        per_scenario[name] = row
+        c = row["comparison"]
+        print(f"{name:16s} best {best:28s} heur {row['heuristic']['iqm_m']:.4f}  learned {row['learned']['iqm_m']:.4f}"
+              f"  improvement {100 * c['improvement']:+.1f} % [{100 * c['improvement_ci'][0]:+.1f}, "
+              f"{100 * c['improvement_ci'][1]:+.1f}]", flush=True)
 
-    print_table("Learned scheduler vs the fixed-interval curve (held-out seeds)",
-                ["quantity", "value"],
-                [["learned mean tag error (m)", learned["mean_tag_error_m"]],
-                 ["fixed-interval error at the same rate (m)", fixed_at_rate],
-                 ["error ratio learned / fixed", learned["mean_tag_error_m"] / fixed_at_rate],
-                 ["learned calibrations / min", learned["calibrations_per_min"]],
-                 ["fixed-interval rate for the same error (/min)", fixed_rate_for_error],
-                 ["training wall (s)", record["training_wall_s"]],
-                 ["training env steps", record["num_timesteps"]],
-                 ["DummyVecEnv steps/s (8 envs)", dummy], ["SubprocVecEnv steps/s (8 envs)", subproc],
-                 ["batched VecEnv steps/s (32 copies)", batched], ["trained on", "/".join(fastest)],
-                 ["target met (>=20% lower error or >=30% fewer calibrations)", str(met)]])
-    figures = {
-        "learned_mean_tag_error_m": learned["mean_tag_error_m"],
-        "fixed_interval_mean_tag_error_m": fixed_at_rate,
-        "learned_to_fixed_error_ratio": learned["mean_tag_error_m"] / fixed_at_rate,
-        "learned_calibrations_per_min": learned["calibrations_per_min"],
-        "fixed_interval_calibrations_per_min_for_same_error": fixed_rate_for_error,
-        "calibration_saving_vs_fixed": rate_saving,
-        "threshold_mean_tag_error_m": rows["threshold:0.15"]["mean_tag_error_m"],
-        "threshold_calibrations_per_min": rows["threshold:0.15"]["calibrations_per_min"],
-        "residual_mean_tag_error_m": rows["residual:0.2"]["mean_tag_error_m"],
-        "residual_calibrations_per_min": rows["residual:0.2"]["calibrations_per_min"],
-        "oracle_mean_tag_error_m": rows["oracle:0.3"]["mean_tag_error_m"],
-        "oracle_calibrations_per_min": rows["oracle:0.3"]["calibrations_per_min"],
-        "paper_fixed_10_mean_tag_error_m": rows["fixed:10"]["mean_tag_error_m"],
-        "training_wall_s": record["training_wall_s"],
-        "model_selected": "best_on_validation" if use_best else "final",
-        "training_env_steps": record["num_timesteps"],
-        "dummy_vec_env_steps_per_s": dummy,
-        "subproc_vec_env_steps_per_s": subproc,
-        "batched_vec_env_steps_per_s": batched,
-        "training_env_mode": "/".join(fastest),
-        "eval_seeds": seeds,
-        "target_met": met,
+    default = per_scenario.get("default")
+    improvements = {n: r["comparison"]["improvement"] for n, r in per_scenario.items()}
+    worst = min(improvements, key=improvements.get)
+    worse_beyond_ci = [n for n, r in per_scenario.items() if r["comparison"]["improvement_ci"][1] < 0]
+    flat = {
+        "code_version": code_version(), "scenarios": ", ".join(names),
+        "held_out_scenarios": ", ".join(n for n in names if per_scenario[n]["held_out"]),
+        "test_seeds_per_scenario": a.test_seeds, "validation_seeds_per_candidate": a.val_seeds,
+        "shipped_model": str(Path(shipped["path"]).relative_to(ROOT)) if Path(shipped["path"]).is_relative_to(ROOT)
+        else shipped["path"], "shipped_training_seed": shipped["seed"],
+        "n_training_seeds": len(models), "training_wall_s_per_seed": max(m["wall_s"] for m in models),
+        **{f"training_wall_s_seed_{m['seed']}": m["wall_s"] for m in models},
+        **{f"training_steps_seed_{m['seed']}": m["steps"] for m in models},
+        "worst_scenario": worst, "worst_scenario_improvement": improvements[worst],
+        "scenarios_worse_than_best_heuristic_beyond_ci": ", ".join(worse_beyond_ci) or "none",
+        "n_scenarios_worse_beyond_ci": len(worse_beyond_ci),
+        "n_scenarios_better_beyond_ci": sum(r["comparison"]["improvement_ci"][0] > 0 for r in per_scenario.values()),
+        "team_sizes_run": ", ".join(str(n) for n in sorted({int(suite[n]["config"].get("sim", {}).get("n_anchors", 4))
+                                                           for n in names})),
+        "wall_s": time.perf_counter() - started,
     }
-    figures = {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in figures.items()}
+    if default:
+        c = default["comparison"]
+        flat.update({
+            "best_heuristic_default": default["best_heuristic"],
+            "learned_iqm_m_default": default["learned"]["iqm_m"], "heuristic_iqm_m_default": default["heuristic"]["iqm_m"],
+            "learned_vs_best_heuristic_iqm_improvement": c["improvement"],
+            "learned_vs_best_heuristic_iqm_improvement_ci_low": c["improvement_ci"][0],
+            "learned_vs_best_heuristic_iqm_improvement_ci_high": c["improvement_ci"][1],
+            "learned_vs_best_heuristic_significant": c["significant"],
+            "learned_fraction_calibrating_default": default["learned"]["fraction_calibrating"],
+            "heuristic_fraction_calibrating_default": default["heuristic"]["fraction_calibrating"],
+            **{f"improvement_training_seed_{k}": v["improvement"]
+               for k, v in default["learned_per_training_seed"].items()},
+        })
+        if "lookahead" in default:
+            flat.update({"lookahead_headroom": default["lookahead"]["headroom"],
+                         "gap_closed_fraction": default["lookahead"]["gap_closed_fraction"],
+                         "lookahead_iqm_m_default": default["lookahead"]["iqm_m"]})
+    rows = [{"scenario": n, "held_out": r["held_out"], "best heuristic": r["best_heuristic"],
+             "heuristic IQM": f"{r['heuristic']['iqm_m']:.4f}", "learned IQM": f"{r['learned']['iqm_m']:.4f}",
+             "improvement %": f"{100 * r['comparison']['improvement']:+.1f}",
+             "CI %": "[{:+.1f}, {:+.1f}]".format(*(100 * x for x in r["comparison"]["improvement_ci"])),
+             "cal. time h/l": f"{r['heuristic']['fraction_calibrating']:.3f}/{r['learned']['fraction_calibrating']:.3f}",
+             "catastrophic h/l": f"{r['heuristic']['catastrophic_rate']:.2f}/{r['learned']['catastrophic_rate']:.2f}"}
+            for n, r in per_scenario.items()]
+    print_table("learned (shipped) vs the best tuned heuristic, per scenario (IQM tag error, m)", list(rows[0]),
+                [list(r.values()) for r in rows])
+    name = "bench_scheduling_quick" if a.quick else "bench_scheduling"
+    write_results(name, flat, a.quick)
+    detail = ROOT / "benchmarks" / "results" / f"{name}_detail.json"
+    detail.write_text(json.dumps(per_scenario, indent=2, default=float))
     if not a.quick:
-        write_results("bench_scheduling", figures, quick=False)
-        files = {"model.zip": model, "vecnormalize.pkl": model.with_name("vecnormalize.pkl"),
-                 "run.json": model.with_name("run.json")}
-        if sum(f.stat().st_size for f in files.values()) < 5_000_000:
-            (MODEL_DIR / "ppo_scheduler").mkdir(parents=True, exist_ok=True)
-            for name, src in files.items():
-                shutil.copy(src, MODEL_DIR / "ppo_scheduler" / name)
-    else:
-        write_results("bench_scheduling_quick", figures, quick=True)
+        DOCS.mkdir(parents=True, exist_ok=True)
+        with open(DOCS / "suite.csv", "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
+        try:
+            from uwb_env.training.plots_scheduling import plot_suite
+
+            plot_suite(per_scenario, DOCS / "suite.png")
+        except ImportError:
+            pass
 
 
 if __name__ == "__main__":

@@ -113,20 +113,31 @@ def _env_config(overrides: dict, max_cycles: int):
 def run_episode(spec: str, seed: int, config_dict: dict) -> dict:
     """One episode of ``spec`` on seed ``seed``; returns its summary and per-step traces."""
     from uwb_env.config import EnvConfig
-    from uwb_env.env.parallel_env import UWBCalibrationParallelEnv
-    from uwb_env.env.policy import rollout
 
     config = EnvConfig.from_dict(config_dict)
     policy = _cached_policy(spec, config.sim.dt_s)  # reset() by rollout; a saved model is read once
+    return {"policy": spec, **run_policy_episode(policy, seed, config)}
+
+
+def run_policy_episode(policy, seed: int, config) -> dict:
+    """One episode of a policy object on seed ``seed`` (``config``: EnvConfig or overrides dict)."""
+    from uwb_env.config import EnvConfig
+    from uwb_env.env.parallel_env import UWBCalibrationParallelEnv
+    from uwb_env.env.policy import rollout
+
+    if not isinstance(config, EnvConfig):
+        config = EnvConfig.from_dict(config)
     mode = getattr(policy, "action_mode", None)
     if mode is not None and mode != config.action_mode:  # same scenario, the actions the policy chooses among
         config = config.replace(action_mode=mode)
     env = UWBCalibrationParallelEnv(config)
+    if hasattr(policy, "configure"):  # the scenario's declared parameters (step length), no ground truth
+        policy.configure(config)
     if hasattr(policy, "bind"):  # planners on the true state (lookahead) need the env itself
         policy.bind(env)
     result = rollout(env, policy, seed=seed)
     return {
-        "policy": spec, "seed": seed, "uses_ground_truth": bool(policy.uses_ground_truth),
+        "seed": seed, "uses_ground_truth": bool(policy.uses_ground_truth),
         **result.summary(), "tag_error_trace": result.tag_error_m, "anchor_error_trace": result.anchor_error_m,
     }
 

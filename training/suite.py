@@ -42,7 +42,8 @@ def load_suite(path: str | None = None) -> dict[str, dict]:
         if any(a[1] >= b[0] for a, b in zip(ranges, ranges[1:], strict=False)):
             raise ValueError(f"suite {path}: scenario {name!r}: seed ranges overlap: {seeds}")
         suite[name] = {"config": entry.get("config") or {}, "max_cycles": int(entry.get("max_cycles", 500)),
-                       "seeds": seeds, "description": entry.get("description", "")}
+                       "seeds": seeds, "description": entry.get("description", ""),
+                       "held_out": bool(entry.get("held_out", False))}
     return suite
 
 

@@ -142,3 +142,91 @@ class BatchedSchedulerVecEnv(VecEnv):
 
     def env_is_wrapped(self, wrapper_class, indices=None) -> list[bool]:
         return [False for _ in self._get_indices(indices)]
+
+
+class AnchorSetVecEnv(VecEnv):
+    """SB3 ``VecEnv`` for the team-size-invariant per-anchor scheduler: one slot per anchor of
+    each training copy (copy k has ``distribution.team_sizes[k]`` anchors for good), each slot
+    observing :func:`uwb_env.agents.anchor_set.anchor_set_features` and choosing a
+    ``per_anchor`` action. Every episode of a copy is a new scenario drawn from ``distribution``
+    (a ``training.train_anchor_set.ScenarioDistribution``) with ``rng``, on the seeds
+    ``seed_base, seed_base + 1, ...`` (mod ``seed_span``: the training seed range)."""
+
+    render_mode = None
+
+    def __init__(self, distribution, rng: np.random.Generator, seed_base: int, seed_span: int):
+        from gymnasium import spaces
+
+        from uwb_env.agents.anchor_set import N_FEATURES
+
+        self.distribution, self.rng = distribution, rng
+        self.seed_base, self.seed_span, self.episodes = seed_base, seed_span, 0
+        self.sizes = [int(n) for n in distribution.team_sizes]
+        self.offsets = np.concatenate([[0], np.cumsum(self.sizes)])
+        obs_space = spaces.Box(-np.inf, np.inf, (N_FEATURES,), np.float32)
+        super().__init__(int(self.offsets[-1]), obs_space, spaces.Discrete(3))
+        self.envs: list = [None] * len(self.sizes)
+        self.dts = [0.2] * len(self.sizes)
+        self._obs = np.zeros((self.num_envs, N_FEATURES), dtype=np.float32)
+        self._actions = None
+
+    def _new_episode(self, k: int):
+        from uwb_env.env.parallel_env import UWBCalibrationParallelEnv
+
+        overrides = self.distribution.sample(self.sizes[k], self.rng)
+        env = UWBCalibrationParallelEnv(overrides)
+        self.envs[k], self.dts[k] = env, env.config.sim.dt_s
+        seed = (self.seed_base + self.episodes) % self.seed_span
+        self.episodes += 1
+        obs, _ = env.reset(seed=seed)
+        return obs
+
+    def _store(self, k: int, obs: dict) -> None:
+        from uwb_env.agents.anchor_set import from_observations
+
+        _, rows = from_observations(obs, self.dts[k])
+        self._obs[self.offsets[k]: self.offsets[k + 1]] = rows
+
+    def reset(self):
+        for k in range(len(self.sizes)):
+            self._store(k, self._new_episode(k))
+        return self._obs.copy()
+
+    def step_async(self, actions: np.ndarray) -> None:
+        self._actions = np.asarray(actions).reshape(self.num_envs)
+
+    def step_wait(self):
+        rewards = np.zeros(self.num_envs, dtype=np.float32)
+        dones = np.zeros(self.num_envs, dtype=bool)
+        infos: list[dict] = [{} for _ in range(self.num_envs)]
+        for k, env in enumerate(self.envs):
+            lo, hi = self.offsets[k], self.offsets[k + 1]
+            agents = env.agents
+            obs, rew, terms, truncs, _ = env.step({a: int(x) for a, x in zip(agents, self._actions[lo:hi], strict=True)})
+            rewards[lo:hi] = rew[agents[0]]  # the team reward, the same for every anchor
+            self._store(k, obs)
+            if any(terms.values()) or any(truncs.values()):
+                trunc = not any(terms.values())
+                dones[lo:hi] = True
+                for i in range(lo, hi):
+                    infos[i] = {"TimeLimit.truncated": trunc, "terminal_observation": self._obs[i].copy()}
+                env.close()
+                self._store(k, self._new_episode(k))
+        return self._obs.copy(), rewards, dones, infos
+
+    def close(self) -> None:
+        for env in self.envs:
+            if env is not None:
+                env.close()
+
+    def get_attr(self, attr_name: str, indices=None) -> list[Any]:
+        return [getattr(self, attr_name) for _ in self._get_indices(indices)]
+
+    def set_attr(self, attr_name: str, value: Any, indices=None) -> None:
+        setattr(self, attr_name, value)
+
+    def env_method(self, method_name: str, *method_args, indices=None, **method_kwargs) -> list[Any]:
+        return [None for _ in self._get_indices(indices)]
+
+    def env_is_wrapped(self, wrapper_class, indices=None) -> list[bool]:
+        return [False for _ in self._get_indices(indices)]

@@ -1,0 +1,123 @@
+"""Team-size-invariant features for a per-anchor scheduler shared by all anchors.
+
+Each anchor decides about itself (``per_anchor`` actions: nothing / re-locate me / team round)
+from its own features and a permutation-invariant summary of the others' (mean and max), so
+one trained model runs on any team size, in 2D or 3D. Positions are left out: they are
+coordinates in a frame the first calibration chose, not information about staleness.
+
+Layout of one anchor's row (``ANCHOR_SET_FIELDS``):
+
+| columns | meaning |
+| --- | --- |
+| 0..7 | the anchor's own ``OBS_FIELDS`` (time since calibration ... round progress) |
+| 8..13 | mean over the other anchors of the first six ``OBS_FIELDS`` |
+| 14..19 | max over the other anchors of the same |
+| 20 | share of the other anchors whose predicted std is below this anchor's (0..1) |
+| 21 | team size N |
+| 22 | step length dt (s) |
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from uwb_env.system import OBS_FIELDS
+
+_SUMMARIZED = OBS_FIELDS[:6]  # the team-level flags (calibrating, progress) are the same for all
+ANCHOR_SET_FIELDS = (
+    tuple(OBS_FIELDS)
+    + tuple(f"others_mean_{f}" for f in _SUMMARIZED)
+    + tuple(f"others_max_{f}" for f in _SUMMARIZED)
+    + ("rank_predicted_std", "n_anchors", "dt_s")
+)
+N_FEATURES = len(ANCHOR_SET_FIELDS)
+_PREDICTED = OBS_FIELDS.index("predicted_position_std_m")
+
+
+def anchor_set_features(own: np.ndarray, dt_s: float) -> np.ndarray:
+    """(..., N, len(OBS_FIELDS)) per-anchor env features (positions already dropped) ->
+    (..., N, N_FEATURES) float32. Needs N >= 2 (a team has at least 3 anchors)."""
+    own = np.asarray(own, dtype=np.float64)
+    n = own.shape[-2]
+    if n < 2:
+        raise ValueError(f"own: needs at least 2 anchors, got shape {own.shape}")
+    part = own[..., : len(_SUMMARIZED)]
+    total = part.sum(-2, keepdims=True)
+    others_mean = (total - part) / (n - 1)
+    # max over the others: the team max, or the second largest for the anchor holding it
+    order = np.sort(part, axis=-2)
+    first, second = order[..., -1:, :], order[..., -2:-1, :]
+    others_max = np.where(part >= first, second, first)
+    pred = own[..., _PREDICTED]
+    rank = (pred[..., None, :] < pred[..., :, None]).sum(-1) / (n - 1)
+    shape = own.shape[:-1]
+    return np.concatenate(
+        [own, others_mean, others_max, rank[..., None], np.full((*shape, 1), float(n)), np.full((*shape, 1), dt_s)],
+        axis=-1,
+    ).astype(np.float32)
+
+
+def from_observations(observations: dict[str, np.ndarray], dt_s: float) -> tuple[list[str], np.ndarray]:
+    """The ParallelEnv's observation dict -> (agents, (N, N_FEATURES) rows)."""
+    agents = list(observations)
+    own = np.stack([observations[a][-len(OBS_FIELDS):] for a in agents])
+    return agents, anchor_set_features(own, dt_s)
+
+
+class AnchorSetPolicy:
+    """A trained per-anchor policy shared by all anchors, for any team size (``per_anchor``
+    actions). ``AnchorSetPolicy.load(path)`` reads a ``training.train_anchor_set`` output
+    (model.zip, vecnormalize.pkl beside it); the harness calls :meth:`configure` with the env
+    config (the step length is one of the features)."""
+
+    uses_ground_truth = False
+    action_mode = "per_anchor"
+
+    def __init__(self, policy, obs_rms=None, clip_obs: float = 10.0, deterministic: bool = True,
+                 dt_s: float = 0.2, epsilon: float = 1e-8):
+        self.policy, self.obs_rms, self.clip_obs = policy, obs_rms, clip_obs
+        self.deterministic, self.dt_s, self.epsilon = deterministic, dt_s, epsilon
+
+    @classmethod
+    def load(cls, path, deterministic: bool = True) -> AnchorSetPolicy:
+        import pickle
+        from pathlib import Path
+
+        try:
+            from stable_baselines3 import PPO
+        except ImportError as err:
+            raise ImportError("AnchorSetPolicy needs stable-baselines3: pip install 'uwb-env[train]'") from err
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"model path={str(path)!r}: no such file")
+        model = PPO.load(str(path), device="cpu")
+        if model.observation_space.shape != (N_FEATURES,):
+            raise ValueError(f"model path={str(path)!r}: observation shape {model.observation_space.shape} is not "
+                             f"the anchor-set features' ({N_FEATURES},)")
+        stats, obs_rms, clip = path.with_name("vecnormalize.pkl"), None, 10.0
+        if stats.exists():
+            with open(stats, "rb") as f:
+                vn = pickle.load(f)
+            obs_rms, clip = (vn.obs_rms if vn.norm_obs else None), vn.clip_obs
+        return cls(model.policy, obs_rms, clip, deterministic)
+
+    def configure(self, config) -> None:
+        self.dt_s = float(config.sim.dt_s)
+
+    def incompatibility(self, config) -> str | None:
+        return None  # any team size, 2D or 3D: the features do not depend on either
+
+    def reset(self, seed: int | None = None) -> None:
+        pass
+
+    def rows(self, observations: dict[str, np.ndarray]) -> tuple[list[str], np.ndarray]:
+        agents, rows = from_observations(observations, self.dt_s)
+        if self.obs_rms is not None:
+            rows = np.clip((rows - self.obs_rms.mean) / np.sqrt(self.obs_rms.var + self.epsilon),
+                           -self.clip_obs, self.clip_obs).astype(np.float32)
+        return agents, rows
+
+    def act(self, observations, infos) -> dict[str, int]:
+        agents, rows = self.rows(observations)
+        actions, _ = self.policy.predict(rows, deterministic=self.deterministic)
+        return {a: int(x) for a, x in zip(agents, np.asarray(actions), strict=True)}
