@@ -1,0 +1,123 @@
+"""The team-size-invariant per-anchor scheduler: features, training env, training run, policy."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from uwb_env.agents.anchor_set import ANCHOR_SET_FIELDS, N_FEATURES, anchor_set_features, from_observations
+from uwb_env.system import OBS_FIELDS
+
+
+def _reference(own: np.ndarray, dt: float) -> np.ndarray:
+    """Row by row, with explicit loops over the other anchors."""
+    n = own.shape[0]
+    rows = []
+    for i in range(n):
+        others = np.delete(own, i, axis=0)[:, :6]
+        rank = np.mean(np.delete(own[:, 1], i) < own[i, 1])
+        rows.append(np.concatenate([own[i], others.mean(0), others.max(0), [rank, n, dt]]))
+    return np.array(rows)
+
+
+@pytest.mark.parametrize("n", [2, 3, 5, 16])
+def test_features_match_a_loop_over_the_others(rng, n):
+    own = rng.uniform(0, 2, (n, len(OBS_FIELDS)))
+    own[1:3, 2] = own[0, 2]  # ties in the max
+    got = anchor_set_features(own, 0.2)
+    assert got.shape == (n, N_FEATURES) == (n, len(ANCHOR_SET_FIELDS)) and got.dtype == np.float32
+    np.testing.assert_allclose(got, _reference(own, 0.2), rtol=1e-6)
+
+
+def test_features_are_permutation_equivariant_and_batch(rng):
+    own = rng.uniform(0, 2, (6, len(OBS_FIELDS)))
+    perm = rng.permutation(6)
+    np.testing.assert_allclose(anchor_set_features(own[perm], 0.5), anchor_set_features(own, 0.5)[perm])
+    batch = rng.uniform(0, 2, (3, 4, len(OBS_FIELDS)))
+    np.testing.assert_allclose(anchor_set_features(batch, 0.2)[1], anchor_set_features(batch[1], 0.2))
+    with pytest.raises(ValueError, match="at least 2 anchors"):
+        anchor_set_features(own[:1], 0.2)
+
+
+@pytest.mark.parametrize("overrides", [{"sim": {"n_anchors": 3}}, {"sim": {"n_anchors": 8, "n_tags": 4}},
+                                       {"sim": {"dim": 3}}])
+def test_features_from_the_env_drop_positions(overrides):
+    import uwb_env
+
+    env = uwb_env.parallel_env(action_mode="per_anchor", **overrides)
+    obs, _ = env.reset(seed=3)
+    agents, rows = from_observations(obs, env.config.sim.dt_s)
+    assert agents == env.agents and rows.shape == (env.config.sim.n_anchors, N_FEATURES)
+    np.testing.assert_allclose(rows[:, : len(OBS_FIELDS)], np.stack([obs[a][-len(OBS_FIELDS):] for a in agents]))
+
+
+def _distribution(tmp_path, team_sizes=(3, 5)):
+    from uwb_env.training.train_anchor_set import DEFAULT_DISTRIBUTION, ScenarioDistribution
+
+    import yaml
+
+    raw = yaml.safe_load(Path(DEFAULT_DISTRIBUTION).read_text())
+    raw.update(team_sizes=list(team_sizes), episode_s=4.0)
+    path = tmp_path / "dist.yml"
+    path.write_text(yaml.safe_dump(raw))
+    return path, ScenarioDistribution.load(path)
+
+
+def test_distribution_refuses_unknown_keys_and_small_teams(tmp_path):
+    from uwb_env.training.train_anchor_set import ScenarioDistribution
+
+    path, _ = _distribution(tmp_path)
+    text = path.read_text()
+    (tmp_path / "bad.yml").write_text(text + "wind_mps: [0, 1]\n")
+    with pytest.raises(ValueError, match="unknown keys \\['wind_mps'\\]"):
+        ScenarioDistribution.load(tmp_path / "bad.yml")
+    (tmp_path / "small.yml").write_text(text.replace("team_sizes:\n- 3\n- 5", "team_sizes:\n- 2\n- 5"))
+    with pytest.raises(ValueError, match="team_sizes"):
+        ScenarioDistribution.load(tmp_path / "small.yml")
+
+
+def test_vec_env_slots_rewards_and_episode_ends(tmp_path):
+    from uwb_env.training.vec_env import AnchorSetVecEnv
+
+    _, dist = _distribution(tmp_path)
+    venv = AnchorSetVecEnv(dist, np.random.default_rng(0), seed_base=499_998, seed_span=500_000)
+    obs = venv.reset()
+    assert venv.num_envs == 8 and obs.shape == (8, N_FEATURES)
+    assert np.all(obs[:3, -2] == 3) and np.all(obs[3:, -2] == 5)  # team size column
+    ended = 0
+    for _ in range(40):
+        obs, rew, dones, infos = venv.step(np.zeros(8, dtype=int))
+        assert rew[0] == rew[1] == rew[2] and rew[3] == rew[7]  # the team reward in every slot of a copy
+        if dones.any():
+            assert dones[:3].all() == dones[0] and dones[3:].all() == dones[3]
+            k = int(np.flatnonzero(dones)[0])
+            assert infos[k]["TimeLimit.truncated"] and infos[k]["terminal_observation"].shape == (N_FEATURES,)
+            ended += dones.sum()
+    assert ended > 0
+    assert venv.episodes > 2 and all(e.config.action_mode == "per_anchor" for e in venv.envs)
+
+
+def test_training_runs_saves_a_validation_chosen_model_and_resumes(tmp_path):
+    from uwb_env.training.train_anchor_set import Args, main
+
+    path, _ = _distribution(tmp_path, team_sizes=(3, 4))
+    args = Args(seed=1, out=str(tmp_path / "run"), total_timesteps=3000, eval_every_steps=1500, distribution=str(path),
+                hp=["n_steps=64", "batch_size=224"], val_episodes_per_scenario=1, val_max_cycles=20, max_wall_s=None)
+    first = main(args)
+    assert first["steps"] >= 3000 and len(first["history"]) >= 2
+    best = tmp_path / "run" / "best"
+    assert (best / "model.zip").is_file() and (best / "vecnormalize.pkl").is_file()
+    record = json.loads((best / "run.json").read_text())
+    assert record["env"] == "anchor_set" and record["val_return"] == max(h["val_return"] for h in first["history"])
+    # the same command after the end (or a kill) continues from the checkpoint: no steps lost
+    again = main(Args(**{**args.__dict__, "total_timesteps": 4500}))
+    assert again["steps"] >= 4500 and len(again["history"]) > len(first["history"])
+
+    # the trained model runs on any team size, 2D or 3D, through the registry's learned: spec
+    from uwb_env.training.evaluate import run_episode
+
+    for overrides in ({"sim": {"n_anchors": 3}}, {"sim": {"n_anchors": 16, "n_tags": 2, "area_size_m": 30.0}},
+                      {"sim": {"dim": 3}}):
+        ep = run_episode(f"learned:{best / 'model.zip'}", 1_000_000, {**overrides, "max_cycles": 15})
+        assert np.isfinite(ep["mean_tag_error_m"]) and len(ep["tag_error_trace"]) == 15
