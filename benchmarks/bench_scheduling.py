@@ -205,7 +205,8 @@ def main() -> None:
         c = default["comparison"]
         flat.update({
             "best_heuristic_default": default["best_heuristic"],
-            "learned_iqm_m_default": default["learned"]["iqm_m"], "heuristic_iqm_m_default": default["heuristic"]["iqm_m"],
+            "learned_iqm_m_default": default["learned"]["iqm_m"],
+            "heuristic_iqm_m_default": default["heuristic"]["iqm_m"],
             "learned_vs_best_heuristic_iqm_improvement": c["improvement"],
             "learned_vs_best_heuristic_iqm_improvement_ci_low": c["improvement_ci"][0],
             "learned_vs_best_heuristic_iqm_improvement_ci_high": c["improvement_ci"][1],
@@ -223,7 +224,8 @@ def main() -> None:
              "heuristic IQM": f"{r['heuristic']['iqm_m']:.4f}", "learned IQM": f"{r['learned']['iqm_m']:.4f}",
              "improvement %": f"{100 * r['comparison']['improvement']:+.1f}",
              "CI %": "[{:+.1f}, {:+.1f}]".format(*(100 * x for x in r["comparison"]["improvement_ci"])),
-             "cal. time h/l": f"{r['heuristic']['fraction_calibrating']:.3f}/{r['learned']['fraction_calibrating']:.3f}",
+             "cal. time h/l": "{:.3f}/{:.3f}".format(r["heuristic"]["fraction_calibrating"],
+                                                     r["learned"]["fraction_calibrating"]),
              "catastrophic h/l": f"{r['heuristic']['catastrophic_rate']:.2f}/{r['learned']['catastrophic_rate']:.2f}"}
             for n, r in per_scenario.items()]
     print_table("learned (shipped) vs the best tuned heuristic, per scenario (IQM tag error, m)", list(rows[0]),

@@ -26,7 +26,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import pickle
 import shutil
 import time
 from dataclasses import asdict, dataclass
@@ -34,7 +33,6 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-
 from uwb_env.training.hyperparams_io import load_block
 
 HERE = Path(__file__).resolve().parent
@@ -158,7 +156,6 @@ def main(args: Args) -> dict:
     from stable_baselines3 import PPO
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.vec_env import VecNormalize
-
     from uwb_env.agents.anchor_set import AnchorSetPolicy
     from uwb_env.training.vec_env import AnchorSetVecEnv
 
@@ -228,23 +225,32 @@ def main(args: Args) -> dict:
     return summary
 
 
-def _parse() -> Args:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def add_arguments(p: argparse.ArgumentParser) -> None:
     d = Args()
     for f in dataclasses.fields(Args):
         flag = "--" + f.name.replace("_", "-")
         if f.name == "hp":
-            p.add_argument(flag, action="append", default=[], help="hyperparameter override key=value")
+            p.add_argument(flag, action="append", default=[], help="hyperparameter override key=value (repeatable)")
         elif f.type == "bool":
             p.add_argument(flag, action=argparse.BooleanOptionalAction, default=getattr(d, f.name))
-        elif f.name in ("max_wall_s",):
-            p.add_argument(flag, type=float, default=getattr(d, f.name))
+        elif f.name == "max_wall_s":
+            p.add_argument(flag, type=float, default=d.max_wall_s, help="wall-clock budget, s")
         elif f.name == "val_max_cycles":
             p.add_argument(flag, type=int, default=None)
         else:
             p.add_argument(flag, type=type(getattr(d, f.name)), default=getattr(d, f.name))
-    return Args(**vars(p.parse_args()))
+
+
+def args_from_namespace(ns: argparse.Namespace) -> Args:
+    names = {f.name for f in dataclasses.fields(Args)}
+    return Args(**{k: v for k, v in vars(ns).items() if k in names})
+
+
+def report(summary: dict) -> str:
+    return json.dumps({k: v for k, v in summary.items() if k != "history"}, indent=2)
 
 
 if __name__ == "__main__":
-    print(json.dumps({k: v for k, v in main(_parse()).items() if k != "history"}, indent=2))
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_arguments(parser)
+    print(report(main(args_from_namespace(parser.parse_args()))))

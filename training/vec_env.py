@@ -156,7 +156,6 @@ class AnchorSetVecEnv(VecEnv):
 
     def __init__(self, distribution, rng: np.random.Generator, seed_base: int, seed_span: int):
         from gymnasium import spaces
-
         from uwb_env.agents.anchor_set import N_FEATURES
 
         self.distribution, self.rng = distribution, rng
@@ -202,7 +201,8 @@ class AnchorSetVecEnv(VecEnv):
         for k, env in enumerate(self.envs):
             lo, hi = self.offsets[k], self.offsets[k + 1]
             agents = env.agents
-            obs, rew, terms, truncs, _ = env.step({a: int(x) for a, x in zip(agents, self._actions[lo:hi], strict=True)})
+            actions = {a: int(x) for a, x in zip(agents, self._actions[lo:hi], strict=True)}
+            obs, rew, terms, truncs, _ = env.step(actions)
             rewards[lo:hi] = rew[agents[0]]  # the team reward, the same for every anchor
             self._store(k, obs)
             if any(terms.values()) or any(truncs.values()):

@@ -146,6 +146,26 @@ def _train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _train_anchor_set_args(p: argparse.ArgumentParser) -> None:
+    from uwb_env.training.train_anchor_set import add_arguments
+
+    add_arguments(p)
+
+
+def _train_anchor_set(args: argparse.Namespace) -> int:
+    try:
+        import stable_baselines3  # noqa: F401
+    except ImportError:
+        print("uwb-env train-anchor-set: needs the 'train' extra: pip install 'uwb-env[train]'", file=sys.stderr)
+        return 2
+    from uwb_env.training.train_anchor_set import args_from_namespace, main, report
+
+    print(report(main(args_from_namespace(args))))
+    model = f"{args.out}/best/model.zip"
+    print(f"model: {model}  (evaluate: uwb-env evaluate --policies learned:{model})")
+    return 0
+
+
 def _emulate_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--config", default=None, help="YAML/JSON file with SimConfig overrides (the emulated scene)")
@@ -220,6 +240,8 @@ COMMANDS = {
     "evaluate": (_evaluate_args, _evaluate, "compare calibration schedulers over held-out seeds"),
     "tune": (_tune_args, _tune, "tune the heuristic schedulers' parameters on validation seeds"),
     "train": (_train_args, _train, "train a scheduler: stable-baselines3 (PPO/A2C/DQN) or Ray RLlib (--backend rllib)"),
+    "train-anchor-set": (_train_anchor_set_args, _train_anchor_set,
+                         "train the team-size-invariant per-anchor scheduler (one model for any team size)"),
     "emulate": (_emulate_args, _emulate, "serve emulated DWM1001 devices on pseudo-terminals or sockets"),
 }
 

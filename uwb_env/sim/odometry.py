@@ -133,7 +133,8 @@ class OdometryModel:
         p2 = p.real * p.real + p.imag * p.imag
         cross = p.real * b.real + p.imag * b.imag
         white = 2 * cfg.noise_std_m_per_sqrt_m**2 * self.expected_slip_gain2 * self._dist[robots]
-        heading = (cfg.scale_error_std**2 + self._h0[robots] + self._sum_a[robots]) * p2 - 2 * cross + self._sum_c[robots]
+        carried = cfg.scale_error_std**2 + self._h0[robots] + self._sum_a[robots]
+        heading = carried * p2 - 2 * cross + self._sum_c[robots]
         return white + np.maximum(heading, 0.0)
 
     @property
