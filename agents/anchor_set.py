@@ -94,12 +94,12 @@ class AnchorSetPolicy:
         if model.observation_space.shape != (N_FEATURES,):
             raise ValueError(f"model path={str(path)!r}: observation shape {model.observation_space.shape} is not "
                              f"the anchor-set features' ({N_FEATURES},)")
-        stats, obs_rms, clip = path.with_name("vecnormalize.pkl"), None, 10.0
-        if stats.exists():
-            with open(stats, "rb") as f:
-                vn = pickle.load(f)
-            obs_rms, clip = (vn.obs_rms if vn.norm_obs else None), vn.clip_obs
-        return cls(model.policy, obs_rms, clip, deterministic)
+        stats = path.with_name("vecnormalize.pkl")
+        if not stats.is_file():  # the model was trained on normalized features: raw ones would be garbage
+            raise FileNotFoundError(f"model path={str(path)!r}: no vecnormalize.pkl beside it (saved by training)")
+        with open(stats, "rb") as f:
+            vn = pickle.load(f)
+        return cls(model.policy, vn.obs_rms if vn.norm_obs else None, vn.clip_obs, deterministic, epsilon=vn.epsilon)
 
     def configure(self, config) -> None:
         self.dt_s = float(config.sim.dt_s)

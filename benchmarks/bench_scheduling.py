@@ -17,7 +17,7 @@ closed). Training is ``training/train_anchor_set.py`` (``--models`` names its ou
 
 Writes benchmarks/results/bench_scheduling.json (``--quick``: bench_scheduling_quick.json, a
 smoke run on 3 scenarios, few seeds, short episodes) and docs/results/scheduling/
-(suite.csv, table.md, plots) unless ``--quick``.
+(suite.csv, table.md, suite.png) unless ``--quick``.
 """
 
 from __future__ import annotations
@@ -92,13 +92,13 @@ def describe(errors: np.ndarray, calib: np.ndarray, rate: np.ndarray, returns: n
 
 def compare(learned: np.ndarray, heuristic: np.ndarray) -> dict:
     """Paired by seed: IQM(learned) - IQM(heuristic) and the relative improvement (> 0: learned better)."""
-    from uwb_env.evaluation.stats import iqm, paired_difference, probability_of_improvement
+    from uwb_env.evaluation.stats import paired_difference, paired_relative_improvement, probability_of_improvement
 
     diff = paired_difference(learned, heuristic, "iqm")
-    base = float(iqm(heuristic))
+    rel = paired_relative_improvement(learned, heuristic, "iqm")
     poi = probability_of_improvement(learned, heuristic)
     return {"iqm_difference_m": diff.value, "iqm_difference_ci": [diff.ci_low, diff.ci_high],
-            "improvement": -diff.value / base, "improvement_ci": [-diff.ci_high / base, -diff.ci_low / base],
+            "improvement": rel.value, "improvement_ci": [rel.ci_low, rel.ci_high],
             "significant": diff.excludes_zero(), "probability_of_improvement": poi.value}
 
 
@@ -129,7 +129,7 @@ def main() -> None:
     from uwb_env.training.evaluate import run_jobs
     from uwb_env.training.suite import load_suite
 
-    from uwb_env.evaluation.stats import gap_closed_fraction, iqm
+    from uwb_env.evaluation.stats import gap_closed_fraction, iqm, paired_relative_improvement
 
     started = time.perf_counter()
     models = []
@@ -164,16 +164,20 @@ def main() -> None:
                 arr = arrays(episodes, f"learned:{m['path']}")
                 row["learned_per_training_seed"][m["seed"]] = {**describe(*arr), **compare(arr[0], h[0])}
             if a.lookahead_seeds:
-                k = int(best.partition(":")[2]) if best.startswith("fixed:") else 60
+                k = int(tuned["best_of_family"]["fixed"].partition(":")[2])  # the planner's base interval
                 spec = a.lookahead if a.lookahead != "lookahead" else f"lookahead:{min(max(int(2.5 * k), 60), 300)}@{k}"
                 la_seeds = seeds[: a.lookahead_seeds]
                 la = run_jobs([(spec, s, config) for s in la_seeds], a.workers, "lookahead", show=False)
                 la_err = arrays(la, spec)
-                n = len(la_seeds)
+                n = len(la_seeds)  # the lookahead's seeds: every figure below is on these
                 ref, heur_n, learn_n = float(iqm(la_err[0])), float(iqm(h[0][:n])), float(iqm(lr[0][:n]))
-                row["lookahead"] = {"spec": spec, **describe(*la_err),
-                                    "headroom": (heur_n - ref) / heur_n,
-                                    "gap_closed_fraction": gap_closed_fraction(heur_n, learn_n, ref)}
+                headroom = paired_relative_improvement(la_err[0], h[0][:n], "iqm")
+                # a gap the lookahead does not significantly open cannot be "closed" by a fraction
+                gap = gap_closed_fraction(heur_n, learn_n, ref) if headroom.ci_low > 0 else float("nan")
+                row["lookahead"] = {"spec": spec, **describe(*la_err), "n_seeds": n,
+                                    "heuristic_iqm_m_same_seeds": heur_n, "learned_iqm_m_same_seeds": learn_n,
+                                    "headroom": headroom.value, "headroom_ci": [headroom.ci_low, headroom.ci_high],
+                                    "gap_closed_fraction": gap}
         per_scenario[name] = row
         c = row["comparison"]
         print(f"{name:16s} best {best:28s} heur {row['heuristic']['iqm_m']:.4f}  learned {row['learned']['iqm_m']:.4f}"
@@ -217,9 +221,13 @@ def main() -> None:
                for k, v in default["learned_per_training_seed"].items()},
         })
         if "lookahead" in default:
-            flat.update({"lookahead_headroom": default["lookahead"]["headroom"],
-                         "gap_closed_fraction": default["lookahead"]["gap_closed_fraction"],
-                         "lookahead_iqm_m_default": default["lookahead"]["iqm_m"]})
+            la = default["lookahead"]
+            flat.update({"lookahead_spec": la["spec"], "lookahead_seeds": la["n_seeds"],
+                         "lookahead_headroom": la["headroom"], "lookahead_headroom_ci_low": la["headroom_ci"][0],
+                         "lookahead_headroom_ci_high": la["headroom_ci"][1],
+                         "gap_closed_fraction": la["gap_closed_fraction"], "lookahead_iqm_m_default": la["iqm_m"],
+                         "heuristic_iqm_m_lookahead_seeds": la["heuristic_iqm_m_same_seeds"],
+                         "learned_iqm_m_lookahead_seeds": la["learned_iqm_m_same_seeds"]})
     rows = [{"scenario": n, "held_out": r["held_out"], "best heuristic": r["best_heuristic"],
              "heuristic IQM": f"{r['heuristic']['iqm_m']:.4f}", "learned IQM": f"{r['learned']['iqm_m']:.4f}",
              "improvement %": f"{100 * r['comparison']['improvement']:+.1f}",
@@ -240,12 +248,33 @@ def main() -> None:
             w = csv.DictWriter(f, fieldnames=list(rows[0]))
             w.writeheader()
             w.writerows(rows)
-        try:
-            from uwb_env.training.plots_scheduling import plot_suite
+        lines = ["| " + " | ".join(rows[0]) + " |", "|" + " --- |" * len(rows[0])]
+        lines += ["| " + " | ".join(str(v) for v in r.values()) + " |" for r in rows]
+        (DOCS / "table.md").write_text("\n".join(lines) + "\n")
+        plot_suite(per_scenario, DOCS / "suite.png")
 
-            plot_suite(per_scenario, DOCS / "suite.png")
-        except ImportError:
-            pass
+
+def plot_suite(per_scenario: dict, path: Path) -> None:
+    """IQM tag error with 95 % CIs per scenario: best tuned heuristic vs learned."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(per_scenario)
+    x = np.arange(len(names))
+    fig, ax = plt.subplots(figsize=(max(6, 0.9 * len(names)), 4))
+    for shift, key, label in ((-0.18, "heuristic", "best tuned heuristic"), (0.18, "learned", "learned (shipped)")):
+        v = np.array([per_scenario[n][key]["iqm_m"] for n in names])
+        lo, hi = (np.array([per_scenario[n][key]["iqm_ci"][i] for n in names]) for i in (0, 1))
+        ax.errorbar(x + shift, v, yerr=[v - lo, hi - v], fmt="o", capsize=3, label=label)
+    ax.set_xticks(x, [n + (" *" if per_scenario[n]["held_out"] else "") for n in names], rotation=30, ha="right")
+    ax.set_ylabel("IQM of episode mean tag error (m)")
+    ax.set_title("test seeds, 95 % bootstrap CIs (* held out of training)")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 if __name__ == "__main__":

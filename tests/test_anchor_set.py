@@ -5,8 +5,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from uwb_env.agents.anchor_set import ANCHOR_SET_FIELDS, N_FEATURES, anchor_set_features, from_observations
+
 from uwb_env.system import OBS_FIELDS
 
 
@@ -53,9 +53,8 @@ def test_features_from_the_env_drop_positions(overrides):
 
 
 def _distribution(tmp_path, team_sizes=(3, 5)):
-    from uwb_env.training.train_anchor_set import DEFAULT_DISTRIBUTION, ScenarioDistribution
-
     import yaml
+    from uwb_env.training.train_anchor_set import DEFAULT_DISTRIBUTION, ScenarioDistribution
 
     raw = yaml.safe_load(Path(DEFAULT_DISTRIBUTION).read_text())
     raw.update(team_sizes=list(team_sizes), episode_s=4.0)
@@ -110,9 +109,17 @@ def test_training_runs_saves_a_validation_chosen_model_and_resumes(tmp_path):
     assert (best / "model.zip").is_file() and (best / "vecnormalize.pkl").is_file()
     record = json.loads((best / "run.json").read_text())
     assert record["env"] == "anchor_set" and record["val_return"] == max(h["val_return"] for h in first["history"])
-    # the same command after the end (or a kill) continues from the checkpoint: no steps lost
+    state = tmp_path / "run" / "checkpoints" / "state.json"
+    episodes_before = json.loads(state.read_text())["episodes"]
+    # the same command after the end (or a kill) continues from the checkpoint: no steps lost,
+    # and the scenario stream goes on where it stopped instead of replaying its start
     again = main(Args(**{**args.__dict__, "total_timesteps": 4500}))
     assert again["steps"] >= 4500 and len(again["history"]) > len(first["history"])
+    assert json.loads(state.read_text())["episodes"] > episodes_before
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "notes.txt").write_text("mine")
+    with pytest.raises(FileExistsError, match="refusing"):
+        main(Args(**{**args.__dict__, "out": str(tmp_path / "other")}))
 
     # the trained model runs on any team size, 2D or 3D, through the registry's learned: spec
     from uwb_env.training.evaluate import run_episode

@@ -88,3 +88,21 @@ def test_summary_and_gap():
     assert gap_closed_fraction(0.3, 0.25, 0.2) == pytest.approx(0.5)
     with pytest.raises(ValueError, match="finite"):
         bootstrap_ci([np.nan, 1.0])
+
+
+def test_paired_relative_improvement_includes_the_denominators_uncertainty():
+    from uwb_env.evaluation.stats import iqm, paired_relative_improvement
+
+    rng = np.random.default_rng(4)
+    b = rng.lognormal(np.log(0.15), 0.4, 120)
+    a = 0.8 * b  # 20 % lower on every seed
+    exact = paired_relative_improvement(a, b)
+    assert (exact.value, exact.ci_low, exact.ci_high) == pytest.approx((0.2, 0.2, 0.2))
+    a = 0.8 * b + rng.normal(0, 0.02, b.size)
+    rel = paired_relative_improvement(a, b)
+    assert rel.ci_low < rel.value < rel.ci_high
+    # the same percentile bootstrap by hand: seeds resampled with their pairs
+    idx = rng.integers(0, b.size, (4000, b.size))
+    ratios = 1 - iqm(a[idx], axis=1) / iqm(b[idx], axis=1)
+    low, high = np.percentile(ratios, [2.5, 97.5])
+    assert rel.ci_low == pytest.approx(low, abs=0.01) and rel.ci_high == pytest.approx(high, abs=0.01)

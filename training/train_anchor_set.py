@@ -56,6 +56,8 @@ class Args:
     hyperparams: str = str(DEFAULT_HYPERPARAMS)
     hp: list[str] = dataclasses.field(default_factory=list)
     eval_every_steps: int = 250_000
+    checkpoint_every_steps: int = 50_000
+    """the latest state (model, statistics, scenario stream) for resuming after a kill"""
     val_episodes_per_scenario: int = 2
     val_max_cycles: int | None = None
     """shorter validation episodes (tests); None: the scenarios' own"""
@@ -167,18 +169,24 @@ def main(args: Args) -> dict:
     policy_name = hp.pop("policy", "MlpPolicy")
     rng = np.random.default_rng([args.seed, 7])  # the scenario draws of this training seed
     seed_base = (args.seed * 100_003) % TRAINING_SEED_SPAN
-    venv = AnchorSetVecEnv(dist, rng, seed_base, TRAINING_SEED_SPAN)
+    venv = base = AnchorSetVecEnv(dist, rng, seed_base, TRAINING_SEED_SPAN)
     ckpt = out / "checkpoints"
     state_path = ckpt / "state.json"
     resumed = args.resume and state_path.exists()
     if resumed:
-        venv = VecNormalize.load(str(ckpt / "vecnormalize.pkl"), venv)
-        model = PPO.load(ckpt / "model.zip", env=venv, device="cpu")
         state = json.loads(state_path.read_text())
+        # continue the scenario stream where it stopped (not replay it from the start)
+        base.rng.bit_generator.state = state["scenario_rng"]
+        base.episodes = state["episodes"]
+        venv = VecNormalize.load(str(ckpt / "vecnormalize.pkl"), base)
+        model = PPO.load(ckpt / "model.zip", env=venv, device="cpu")
     else:
-        if out.exists():
+        if out.exists() and any(out.iterdir()):
+            if not ((out / "checkpoints").exists() or (out / "best").exists() or (out / "summary.json").exists()):
+                raise FileExistsError(f"out={str(out)!r}: not empty and not a training run's folder; refusing to "
+                                      "overwrite it")
             shutil.rmtree(out)
-        venv = VecNormalize(venv, norm_obs=normalize, norm_reward=norm_reward, gamma=hp.get("gamma", 0.99))
+        venv = VecNormalize(base, norm_obs=normalize, norm_reward=norm_reward, gamma=hp.get("gamma", 0.99))
         model = PPO(policy_name, venv, seed=args.seed, device="cpu", verbose=args.verbose, **hp)
         state = {"best_score": -np.inf, "best_step": 0, "history": [], "wall_s": 0.0}
     jobs = validation_jobs(args)
@@ -188,6 +196,7 @@ def main(args: Args) -> dict:
 
     def checkpoint():
         state["wall_s"] = time.perf_counter() - started
+        state["scenario_rng"], state["episodes"] = base.rng.bit_generator.state, base.episodes
         _save(model, venv, ckpt, record)
         state_path.write_text(json.dumps(state, indent=2))
 
@@ -205,11 +214,15 @@ def main(args: Args) -> dict:
         def __init__(self):
             super().__init__()
             self.next_eval = (model.num_timesteps // args.eval_every_steps + 1) * args.eval_every_steps
+            self.next_ckpt = (model.num_timesteps // args.checkpoint_every_steps + 1) * args.checkpoint_every_steps
 
         def _on_step(self) -> bool:
             if self.num_timesteps >= self.next_eval:
                 self.next_eval += args.eval_every_steps
-                evaluate_now()
+                evaluate_now()  # also checkpoints
+            elif self.num_timesteps >= self.next_ckpt:
+                self.next_ckpt += args.checkpoint_every_steps
+                checkpoint()
             return not (args.max_wall_s and time.perf_counter() - started > args.max_wall_s)
 
     remaining = max(args.total_timesteps - model.num_timesteps, 0)
