@@ -138,7 +138,8 @@ def _reference_mirror(anchors, positions, ranges, var, cov, loss, f_scale, margi
 
     c_fix, n_valid = chi2(zp)
     c_raw, _ = chi2(zm)
-    candidate = fixed & (n_valid >= 3) & (c_raw < c_fix + margin + 50.0 * n_valid) & (np.abs(zm - zp) > 3 * np.sqrt(var))
+    candidate = (fixed & (n_valid >= 3) & (c_raw < c_fix + margin + 50.0 * n_valid)
+                 & (np.abs(zm - zp) > 3 * np.sqrt(var)))
     start = np.where(candidate[:, None], np.stack([zm.real, zm.imag], -1), np.nan_to_num(positions))
     refined = _reference(anchors, start, ranges, var, cov, loss, f_scale, iterations)[0]
     zr = refined[:, 0] + 1j * refined[:, 1]
