@@ -121,6 +121,8 @@ def main() -> None:
                    "interval K, branches cut at 2.5K steps: lookahead:2.5K@K)")
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--max-cycles", type=int, default=None, help="override every scenario's episode length")
+    p.add_argument("--resume", action="store_true", help="keep the scenarios an interrupted run finished "
+                   "(benchmarks/results/bench_scheduling_detail.json, same model and seed count)")
     a = p.parse_args()
     if a.quick:
         a.test_seeds, a.val_seeds, a.lookahead_seeds, a.max_cycles = 6, 3, 2, 60
@@ -142,8 +144,16 @@ def main() -> None:
     learned = f"learned:{shipped['path']}"
     suite = load_suite()
     names = a.scenarios or list(suite)
+    name_out = "bench_scheduling_quick" if a.quick else "bench_scheduling"
+    detail = ROOT / "benchmarks" / "results" / f"{name_out}_detail.json"
     per_scenario = {}
+    if a.resume and detail.exists():  # scenarios finished by an interrupted run with the same settings
+        done = json.loads(detail.read_text())
+        per_scenario = {n: r for n, r in done.items() if n in names and r.get("learned_spec") == learned
+                        and r["test_seeds"][1] - r["test_seeds"][0] + 1 == a.test_seeds}
     for name in names:
+        if name in per_scenario:
+            continue
         sc = suite[name]
         config = {**sc["config"], "max_cycles": a.max_cycles or sc["max_cycles"]}
         v0, t0 = sc["seeds"]["validation"][0], sc["seeds"]["test"][0]
@@ -155,36 +165,47 @@ def main() -> None:
         seeds = list(range(t0, t0 + a.test_seeds))
         episodes = run_jobs([(s, seed, config) for s in specs for seed in seeds], a.workers, f"test {name}", show=False)
         h, lr = arrays(episodes, best), arrays(episodes, learned)
-        row = {"held_out": sc["held_out"], "best_heuristic": best, "tuning": tuned,
+        row = {"held_out": sc["held_out"], "best_heuristic": best, "learned_spec": learned, "tuning": tuned,
                "heuristic": describe(*h), "learned": describe(*lr), "comparison": compare(lr[0], h[0]),
                "test_seeds": [seeds[0], seeds[-1]]}
+        row["errors_m"] = {"heuristic": h[0].tolist(), "learned": lr[0].tolist()}  # by test seed, for pairing
         if name == "default":
             row["learned_per_training_seed"] = {}
             for m in models:
                 arr = arrays(episodes, f"learned:{m['path']}")
                 row["learned_per_training_seed"][m["seed"]] = {**describe(*arr), **compare(arr[0], h[0])}
-            if a.lookahead_seeds:
-                k = int(tuned["best_of_family"]["fixed"].partition(":")[2])  # the planner's base interval
-                spec = a.lookahead if a.lookahead != "lookahead" else f"lookahead:{min(max(int(2.5 * k), 60), 300)}@{k}"
-                la_seeds = seeds[: a.lookahead_seeds]
-                la = run_jobs([(spec, s, config) for s in la_seeds], a.workers, "lookahead", show=False)
-                la_err = arrays(la, spec)
-                n = len(la_seeds)  # the lookahead's seeds: every figure below is on these
-                ref, heur_n, learn_n = float(iqm(la_err[0])), float(iqm(h[0][:n])), float(iqm(lr[0][:n]))
-                headroom = paired_relative_improvement(la_err[0], h[0][:n], "iqm")
-                # a gap the lookahead does not significantly open cannot be "closed" by a fraction
-                gap = gap_closed_fraction(heur_n, learn_n, ref) if headroom.ci_low > 0 else float("nan")
-                row["lookahead"] = {"spec": spec, **describe(*la_err), "n_seeds": n,
-                                    "heuristic_iqm_m_same_seeds": heur_n, "learned_iqm_m_same_seeds": learn_n,
-                                    "headroom": headroom.value, "headroom_ci": [headroom.ci_low, headroom.ci_high],
-                                    "gap_closed_fraction": gap}
         per_scenario[name] = row
+        detail.write_text(json.dumps(per_scenario, indent=1, default=float))  # a kill keeps what is done
         c = row["comparison"]
         print(f"{name:16s} best {best:28s} heur {row['heuristic']['iqm_m']:.4f}  learned {row['learned']['iqm_m']:.4f}"
               f"  improvement {100 * c['improvement']:+.1f} % [{100 * c['improvement_ci'][0]:+.1f}, "
               f"{100 * c['improvement_ci'][1]:+.1f}]", flush=True)
 
+    # The reference from above, last (it costs about as much as everything else together).
     default = per_scenario.get("default")
+    if default is not None and a.lookahead_seeds and "lookahead" not in default:
+        sc = suite["default"]
+        config = {**sc["config"], "max_cycles": a.max_cycles or sc["max_cycles"]}
+        k = int(default["tuning"]["best_of_family"]["fixed"].partition(":")[2])  # the planner's base interval
+        spec = a.lookahead if a.lookahead != "lookahead" else f"lookahead:{min(max(int(2.5 * k), 60), 300)}@{k}"
+        t0 = sc["seeds"]["test"][0]
+        la_seeds = list(range(t0, t0 + min(a.lookahead_seeds, a.test_seeds)))
+        la = run_jobs([(spec, s, config) for s in la_seeds], a.workers, "lookahead", show=False)
+        la_err = arrays(la, spec)
+        n = len(la_seeds)  # the lookahead's seeds (the first n test seeds): every figure below is on these
+        h_n, l_n = (np.array(default["errors_m"][k_])[:n] for k_ in ("heuristic", "learned"))
+        ref, heur_n, learn_n = float(iqm(la_err[0])), float(iqm(h_n)), float(iqm(l_n))
+        headroom = paired_relative_improvement(la_err[0], h_n, "iqm")
+        # a gap the lookahead does not significantly open cannot be "closed" by a fraction
+        gap = gap_closed_fraction(heur_n, learn_n, ref) if headroom.ci_low > 0 else float("nan")
+        default["lookahead"] = {"spec": spec, **describe(*la_err), "n_seeds": n,
+                                "heuristic_iqm_m_same_seeds": heur_n, "learned_iqm_m_same_seeds": learn_n,
+                                "headroom": headroom.value, "headroom_ci": [headroom.ci_low, headroom.ci_high],
+                                "gap_closed_fraction": gap}
+        detail.write_text(json.dumps(per_scenario, indent=1, default=float))
+        print(f"lookahead {spec}: IQM {ref:.4f} vs heuristic {heur_n:.4f} (headroom {100 * headroom.value:+.1f} %), "
+              f"learned {learn_n:.4f}: gap closed {gap:.2f}", flush=True)
+
     improvements = {n: r["comparison"]["improvement"] for n, r in per_scenario.items()}
     worst = min(improvements, key=improvements.get)
     worse_beyond_ci = [n for n, r in per_scenario.items() if r["comparison"]["improvement_ci"][1] < 0]
@@ -238,10 +259,8 @@ def main() -> None:
             for n, r in per_scenario.items()]
     print_table("learned (shipped) vs the best tuned heuristic, per scenario (IQM tag error, m)", list(rows[0]),
                 [list(r.values()) for r in rows])
-    name = "bench_scheduling_quick" if a.quick else "bench_scheduling"
-    write_results(name, flat, a.quick)
-    detail = ROOT / "benchmarks" / "results" / f"{name}_detail.json"
-    detail.write_text(json.dumps(per_scenario, indent=2, default=float))
+    write_results(name_out, flat, a.quick)
+    detail.write_text(json.dumps(per_scenario, indent=1, default=float))
     if not a.quick:
         DOCS.mkdir(parents=True, exist_ok=True)
         with open(DOCS / "suite.csv", "w", newline="") as f:
