@@ -128,3 +128,16 @@ def test_training_runs_saves_a_validation_chosen_model_and_resumes(tmp_path):
                       {"sim": {"dim": 3}}):
         ep = run_episode(f"learned:{best / 'model.zip'}", 1_000_000, {**overrides, "max_cycles": 15})
         assert np.isfinite(ep["mean_tag_error_m"]) and len(ep["tag_error_trace"]) == 15
+
+
+def test_numpy_actor_takes_the_same_actions_as_sb3():
+    pytest.importorskip("stable_baselines3")
+    from uwb_env.agents.anchor_set import _argmax_logits
+    from uwb_env.agents.registry import make_policy
+
+    policy = make_policy("learned:anchor_set")
+    assert policy._layers is not None
+    x = np.random.default_rng(0).normal(0, 2, (5000, N_FEATURES)).astype(np.float32)
+    sb3, _ = policy.policy.predict(x, deterministic=True)
+    np.testing.assert_array_equal(_argmax_logits(policy._layers, x), sb3)
+    assert len(np.unique(sb3)) == 3  # the inputs exercise every action

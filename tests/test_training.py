@@ -111,12 +111,23 @@ def test_shipped_model_runs_through_the_hook():
     from uwb_env.training.evaluate import default_policies
 
     assert shipped_model("ppo_scheduler").is_file()
-    assert "learned:ppo_scheduler" in default_policies()
-    policy = make_policy("learned:ppo_scheduler")
+    assert "learned:anchor_set" in default_policies()  # the main job's learned entry
+    policy = make_policy("learned:ppo_scheduler")  # the earlier 4-anchor model stays loadable
     # trained on free motion (the old default, now training/scenarios/free_motion.yml)
     free = {"anchor_motion": {"model": "heading"}, "tag_motion": {"model": "heading"}}
     result = rollout(parallel_env(max_cycles=300, sim=free), policy, seed=1)
     assert result.steps == 300 and 0 < result.round_started.sum() < 100  # it calibrates, not always
+
+
+@pytest.mark.parametrize("n_anchors", [3, 4, 5, 8, 16])
+def test_shipped_anchor_set_model_runs_on_every_team_size(n_anchors):
+    from uwb_env.agents.anchor_set import AnchorSetPolicy
+
+    policy = make_policy("learned:anchor_set")
+    assert isinstance(policy, AnchorSetPolicy) and policy.action_mode == "per_anchor"
+    env = parallel_env(max_cycles=150, action_mode="per_anchor", sim={"n_anchors": n_anchors, "n_tags": 3})
+    result = rollout(env, policy, seed=2)
+    assert result.steps == 150 and np.isfinite(result.tag_error_m).all()
 
 
 def test_learned_policy_refuses_a_team_of_another_size():

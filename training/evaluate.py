@@ -44,8 +44,13 @@ METRICS = ("mean_tag_error_m", "median_tag_error_m", "p95_tag_error_m", "mean_an
            "calibrations_per_min", "fraction_calibrating", "return")
 
 
+# The main job's learned entry: the team-size-invariant per-anchor scheduler
+# (training/train_anchor_set.py; the training seed with the best validation score).
+SHIPPED_LEARNED = "anchor_set"
+
+
 def default_policies() -> list[str]:
-    """The baselines, plus the shipped PPO scheduler when stable-baselines3 is installed."""
+    """The baselines, plus the shipped learned scheduler when stable-baselines3 is installed."""
     from uwb_env.agents.registry import shipped_model
 
     policies = list(DEFAULT_POLICIES)
@@ -53,8 +58,8 @@ def default_policies() -> list[str]:
         import stable_baselines3  # noqa: F401
     except ImportError:
         return policies
-    if shipped_model("ppo_scheduler").is_file():
-        policies.insert(0, "learned:ppo_scheduler")
+    if shipped_model(SHIPPED_LEARNED).is_file():
+        policies.insert(0, f"learned:{SHIPPED_LEARNED}")
     return policies
 
 
