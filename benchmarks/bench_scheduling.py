@@ -246,7 +246,9 @@ def main() -> None:
             flat.update({"lookahead_spec": la["spec"], "lookahead_seeds": la["n_seeds"],
                          "lookahead_headroom": la["headroom"], "lookahead_headroom_ci_low": la["headroom_ci"][0],
                          "lookahead_headroom_ci_high": la["headroom_ci"][1],
-                         "gap_closed_fraction": la["gap_closed_fraction"], "lookahead_iqm_m_default": la["iqm_m"],
+                         # null (not NaN: strict JSON) when the lookahead opens no significant gap
+                         "gap_closed_fraction": la["gap_closed_fraction"] if np.isfinite(la["gap_closed_fraction"])
+                         else None, "lookahead_iqm_m_default": la["iqm_m"],
                          "heuristic_iqm_m_lookahead_seeds": la["heuristic_iqm_m_same_seeds"],
                          "learned_iqm_m_lookahead_seeds": la["learned_iqm_m_same_seeds"]})
     rows = [{"scenario": n, "held_out": r["held_out"], "best heuristic": r["best_heuristic"],
