@@ -91,7 +91,6 @@ class BatchedSystem:
         self.calibration_count = np.zeros(B, dtype=int)
         self.time_calibrating_s = np.zeros(B)
         self.time_since_calibration_s = np.zeros((B, N))
-        self.distance_since_calibration_m = np.zeros((B, N))
         self.steps_since_calibration = np.zeros((B, N))
         self.calibration_var_m2 = np.zeros((B, N))
         self.anchor_cov = np.zeros((B, N, 2, 2))
@@ -155,10 +154,7 @@ class BatchedSystem:
         if started.any():
             self._start_rounds(np.flatnonzero(started))
         t0 = self.time_s
-        before = self.anchors_est.copy()
         self._advance_world()
-        moved = np.linalg.norm(self.anchors_est - before, axis=2)
-        self.distance_since_calibration_m += moved
         self.steps_since_calibration += 1
         self.time_since_calibration_s += self.dt_s
         busy = np.zeros(B)
@@ -280,7 +276,6 @@ class BatchedSystem:
         self.last_calibration_rms_m[ks] = np.sqrt(np.mean(residuals**2, axis=1))
         self.calibration_count[ks] += 1
         self.time_since_calibration_s[ks] = 0.0
-        self.distance_since_calibration_m[ks] = 0.0
         self.steps_since_calibration[ks] = 0
         self._restart_drift(ks)
         self._hist[ks] = 0
@@ -294,7 +289,6 @@ class BatchedSystem:
         self.last_calibration_rms_m[k] = result.rms_residual_m
         self.calibration_count[k] += 1
         self.time_since_calibration_s[k] = 0.0
-        self.distance_since_calibration_m[k] = 0.0
         self.steps_since_calibration[k] = 0
         self._restart_drift(k)
         self._hist[k] = 0

@@ -133,7 +133,6 @@ class LocalizationSystem:
         self.anchor_round_count = 0
         self.time_calibrating_s = 0.0
         self.time_since_calibration_s = np.zeros(n)
-        self.distance_since_calibration_m = np.zeros(n)
         self.steps_since_calibration = np.zeros(n)
         self.calibration_var_m2 = np.zeros(n)
         self.anchor_cov = np.zeros((n, dim, dim))
@@ -244,10 +243,7 @@ class LocalizationSystem:
             self._est_at_round_start = world.anchors_est.copy()
             started = True
         t0 = world.time_s
-        before = world.anchors_est.copy()
         world.step()
-        delta = world.anchors_est - before
-        self.distance_since_calibration_m += np.sqrt(_sum(delta * delta, 1))
         self.steps_since_calibration += 1
         self.time_since_calibration_s += dt
         report = StepReport(started, False, ignored, 0.0, round_anchor=round_anchor)
@@ -331,7 +327,6 @@ class LocalizationSystem:
         self.calibration_var_m2[i] = float(np.trace(res.covariance))
         self.anchor_round_count += 1
         self.time_since_calibration_s[i] = 0.0
-        self.distance_since_calibration_m[i] = 0.0
         self.steps_since_calibration[i] = 0
         self.world.odometry.restart_drift(i)
         return None
@@ -355,7 +350,6 @@ class LocalizationSystem:
         self.last_calibration_rms_m = result.rms_residual_m
         self.calibration_count += 1
         self.time_since_calibration_s[:] = 0.0
-        self.distance_since_calibration_m[:] = 0.0
         self.steps_since_calibration[:] = 0
         self.world.odometry.restart_drift()
         # Residuals of fixes against the old estimates say nothing about the new ones.
