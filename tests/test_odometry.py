@@ -95,3 +95,37 @@ def test_predicted_drift_variance_matches_the_simulated_drift(rng, slips):
                          slip_rate_per_s=0.05 if slips else 0.0, slip_duration_s=4.0, slip_noise_multiplier=4.0)
     measured, predicted = _drift_after_reset(cfg, rng)
     assert predicted == pytest.approx(measured, rel=0.12)
+
+
+@pytest.mark.parametrize("model", ["distance", "uniform"])
+def test_drift_over_the_second_half_of_a_round_stays_predicted(rng, model):
+    # A calibration solves for the positions at its round's midpoint; the estimate is that plus
+    # the odometry since. Right after the restart, the prediction must carry the drift of the
+    # round's second half (zeroing it made a fresh estimate look exact), and go on from there.
+    cfg = OdometryConfig(model=model, scale_error_std=0.05, yaw_noise_std_rad_per_sqrt_m=0.03,
+                         yaw_noise_std_rad_per_rad=0.0, slip_rate_per_s=0.0)
+    n, dt, step_m = 8000, 0.2, 0.2
+    odo = OdometryModel(cfg)
+    odo.reset(n, rng)
+    heading = rng.uniform(-np.pi, np.pi, n)
+
+    def drive(steps):
+        err = np.zeros((n, 2))
+        for _ in range(steps):
+            delta = step_m * np.column_stack([np.cos(heading), np.sin(heading)])
+            err += odo.estimated_displacement(delta, np.zeros(n), dt, rng) - delta
+        return err
+
+    drive(100)  # a heading error to carry
+    odo.restart_drift()
+    drive(20)
+    odo.mark_round_start()
+    drive(6)  # first half of a 12-step round
+    second_half = drive(6)
+    odo.restart_drift(from_round_midpoint=True)
+    predicted = odo.expected_drift_var_m2(2).mean()
+    measured = (second_half**2).sum(1).mean()
+    assert measured > 0.0
+    assert predicted == pytest.approx(measured, rel=0.12)
+    later = second_half + drive(30)
+    assert odo.expected_drift_var_m2(2).mean() == pytest.approx((later**2).sum(1).mean(), rel=0.12)

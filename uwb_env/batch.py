@@ -198,6 +198,7 @@ class BatchedSystem:
         self._cohort_of[copies] = self._next_cohort
         self._next_cohort += 1
         self.est_at_round_start[copies] = self.anchors_est[copies]
+        self.odometry.mark_round_start(self._robots_of(copies))
 
     def _end_cohort(self, cohort: RoundCohort) -> None:
         del self._cohorts[int(self._cohort_of[cohort.copies[0]])]
@@ -294,10 +295,14 @@ class BatchedSystem:
         self._hist[k] = 0
 
     # -- tags --------------------------------------------------------------------------------------
-    def _restart_drift(self, copies) -> None:
+    def _robots_of(self, copies) -> np.ndarray:
         mask = np.zeros(self.B, dtype=bool)
         mask[copies] = True
-        self.odometry.restart_drift(np.repeat(mask, self.N))
+        return np.repeat(mask, self.N)
+
+    def _restart_drift(self, copies) -> None:
+        # the solution is valid at the round's midpoint: the second half's drift stays predicted
+        self.odometry.restart_drift(self._robots_of(copies), from_round_midpoint=True)
 
     def predicted_anchor_var_m2(self) -> np.ndarray:
         return self.calibration_var_m2 + self.odometry.expected_drift_var_m2(2).reshape(self.B, self.N)

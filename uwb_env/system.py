@@ -181,6 +181,7 @@ class LocalizationSystem:
         for _ in range(self.FIRST_CALIBRATION_MAX_ROUNDS):
             world = self.world
             self._est_at_round_start = world.anchors_est.copy()
+            world.odometry.mark_round_start()
             world.start_calibration_round()
             while not world.round.done:
                 world.step()
@@ -236,11 +237,13 @@ class LocalizationSystem:
         if started:
             world.start_calibration_round()
             self._est_at_round_start = world.anchors_est.copy()
+            world.odometry.mark_round_start()
         elif not running and anchor_requests is not None and anchor_requests.any():
             var = np.where(anchor_requests, self.predicted_anchor_var_m2(), -np.inf)
             round_anchor = int(np.argmax(var))
             world.start_calibration_round(initiators=[round_anchor])
             self._est_at_round_start = world.anchors_est.copy()
+            world.odometry.mark_round_start()
             started = True
         t0 = world.time_s
         world.step()
@@ -328,7 +331,7 @@ class LocalizationSystem:
         self.anchor_round_count += 1
         self.time_since_calibration_s[i] = 0.0
         self.steps_since_calibration[i] = 0
-        self.world.odometry.restart_drift(i)
+        self.world.odometry.restart_drift(i, from_round_midpoint=True)
         return None
 
     def _predicted_covariance(self) -> np.ndarray:
@@ -351,7 +354,7 @@ class LocalizationSystem:
         self.calibration_count += 1
         self.time_since_calibration_s[:] = 0.0
         self.steps_since_calibration[:] = 0
-        self.world.odometry.restart_drift()
+        self.world.odometry.restart_drift(from_round_midpoint=True)
         # Residuals of fixes against the old estimates say nothing about the new ones.
         self._hist_index = 0
 
