@@ -98,34 +98,57 @@ def test_predicted_drift_variance_matches_the_simulated_drift(rng, slips):
 
 
 @pytest.mark.parametrize("model", ["distance", "uniform"])
-def test_drift_over_the_second_half_of_a_round_stays_predicted(rng, model):
+def test_drift_since_a_snapshot_stays_predicted_after_the_restart(rng, model):
     # A calibration solves for the positions at its round's midpoint; the estimate is that plus
-    # the odometry since. Right after the restart, the prediction must carry the drift of the
-    # round's second half (zeroing it made a fresh estimate look exact), and go on from there.
+    # the odometry since. Restarting from a snapshot taken at the midpoint, the prediction must
+    # carry the drift since then (zeroing it made a fresh estimate look exact), on curvy paths,
+    # and go on from there.
     cfg = OdometryConfig(model=model, scale_error_std=0.05, yaw_noise_std_rad_per_sqrt_m=0.03,
-                         yaw_noise_std_rad_per_rad=0.0, slip_rate_per_s=0.0)
-    n, dt, step_m = 8000, 0.2, 0.2
+                         yaw_noise_std_rad_per_rad=0.03, slip_rate_per_s=0.0)
+    n, dt = 8000, 0.2
     odo = OdometryModel(cfg)
     odo.reset(n, rng)
     heading = rng.uniform(-np.pi, np.pi, n)
+    speed = rng.uniform(0.2, 1.2, n)
 
     def drive(steps):
+        nonlocal heading
         err = np.zeros((n, 2))
         for _ in range(steps):
-            delta = step_m * np.column_stack([np.cos(heading), np.sin(heading)])
-            err += odo.estimated_displacement(delta, np.zeros(n), dt, rng) - delta
+            turn = 0.4 * rng.standard_normal(n)
+            heading = heading + turn
+            delta = (speed * dt)[:, None] * np.column_stack([np.cos(heading), np.sin(heading)])
+            err += odo.estimated_displacement(delta, np.abs(turn), dt, rng) - delta
         return err
 
     drive(100)  # a heading error to carry
     odo.restart_drift()
     drive(20)
-    odo.mark_round_start()
-    drive(6)  # first half of a 12-step round
-    second_half = drive(6)
-    odo.restart_drift(from_round_midpoint=True)
+    drive(8)  # first half of a 16-step round
+    mid = odo.snapshot()
+    second_half = drive(8)
+    odo.restart_drift(since=mid)
     predicted = odo.expected_drift_var_m2(2).mean()
     measured = (second_half**2).sum(1).mean()
     assert measured > 0.0
-    assert predicted == pytest.approx(measured, rel=0.12)
+    assert predicted == pytest.approx(measured, rel=0.1)
     later = second_half + drive(30)
-    assert odo.expected_drift_var_m2(2).mean() == pytest.approx((later**2).sum(1).mean(), rel=0.12)
+    assert odo.expected_drift_var_m2(2).mean() == pytest.approx((later**2).sum(1).mean(), rel=0.1)
+
+
+def test_restart_since_a_snapshot_of_some_robots_leaves_the_others(rng):
+    cfg = OdometryConfig(model="distance")
+    odo = OdometryModel(cfg)
+    odo.reset(4, rng)
+    for _ in range(10):
+        odo.estimated_displacement(np.full((4, 2), 0.1), np.zeros(4), 0.2, rng)
+    before = odo.expected_drift_var_m2(2)
+    mask = np.array([False, True, False, True])
+    snap = odo.snapshot(mask)
+    for _ in range(5):
+        odo.estimated_displacement(np.full((4, 2), 0.1), np.zeros(4), 0.2, rng)
+    grown = odo.expected_drift_var_m2(2)
+    odo.restart_drift(mask, since=snap)
+    after = odo.expected_drift_var_m2(2)
+    np.testing.assert_array_equal(after[~mask], grown[~mask])
+    assert np.all(after[mask] > 0) and np.all(after[mask] < before[mask])

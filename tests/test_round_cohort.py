@@ -2,7 +2,7 @@
 
 Rounds that start on the same step are simulated as one cohort; their per-pair statistics and
 motion compensation must equal ``CalibrationRound`` + ``RangeMatrix.from_samples`` +
-``carry_to_round_midpoint``; the batched first calibration must find the shape the full solver
+``RoundPath.carry`` per copy; the batched first calibration must find the shape the full solver
 finds; the batched alignment must equal ``rigid_align``.
 """
 
@@ -17,7 +17,7 @@ from uwb_env.measurements import RangeMatrix
 from uwb_env.sim.calibration_round import CalibrationRound, RoundTiming
 from uwb_env.sim.ranging import RangeModel
 from uwb_env.sim.round_cohort import RoundCohort
-from uwb_env.system import carry_to_round_midpoint
+from uwb_env.sim.round_path import RoundPath, pair_mean_times_s
 
 
 def _moving_teams(rng, c, n, steps):
@@ -39,8 +39,11 @@ def test_cohort_statistics_and_motion_compensation_equal_the_per_copy_round(n):
         cohort.advance(t, t + 0.2, track[step], track[step + 1], model, rng)
         t, step = t + 0.2, step + 1
     mean, std, count = cohort.pair_statistics()
-    est_start, est_now = track[0] + 0.1, track[step] + 0.1
-    carried = cohort.carry_to_midpoint(mean, est_start, est_now, t)
+    estimates = [x + 0.1 for x in track[: step + 1]]  # the on-board path (an offset frame)
+    path = RoundPath(1.0, estimates[0])
+    for s in range(1, step + 1):
+        path.record(1.0 + 0.2 * s, estimates[s])
+    carried = path.carry(mean, cohort.pair_mean_times_s())
     for b in range(c):  # the same exchanges through the single env's path
         single = CalibrationRound(n, timing, k, 1.0)
         single.ranges_m[:] = cohort.ranges_m[b]
@@ -49,8 +52,12 @@ def test_cohort_statistics_and_motion_compensation_equal_the_per_copy_round(n):
         np.testing.assert_allclose(mean[b], matrix.mean_m, rtol=1e-12, equal_nan=True)
         np.testing.assert_allclose(std[b], matrix.std_m, rtol=1e-12, atol=1e-15, equal_nan=True)
         np.testing.assert_array_equal(count[b], matrix.count)
-        ref = carry_to_round_midpoint(matrix, single, est_start[b], est_now[b], t)
-        np.testing.assert_allclose(carried[b], ref.mean_m, rtol=1e-12, atol=1e-12, equal_nan=True)
+        one = RoundPath(1.0, estimates[0][b])
+        for s in range(1, step + 1):
+            one.record(1.0 + 0.2 * s, estimates[s][b])
+        times = pair_mean_times_s(n, single.times_s, single.initiator, single.responder)
+        ref = one.carry(matrix.mean_m, times)
+        np.testing.assert_allclose(carried[b], ref, rtol=1e-12, atol=1e-12, equal_nan=True)
 
 
 def test_batched_first_calibration_finds_the_full_solvers_shape():

@@ -40,6 +40,7 @@ from uwb_env.sim.motion import MotionModel
 from uwb_env.sim.odometry import OdometryModel
 from uwb_env.sim.planar_errors import planar_errors
 from uwb_env.sim.round_cohort import RoundCohort
+from uwb_env.sim.round_path import RoundPath
 from uwb_env.sim.world import formation_xy, tags_inside
 from uwb_env.system import OBS_FIELDS, LocalizationSystem
 
@@ -87,7 +88,6 @@ class BatchedSystem:
         self._cohorts: dict[int, RoundCohort] = {}
         self._cohort_of = np.full(B, -1)
         self._next_cohort = 0
-        self.est_at_round_start = np.zeros((B, N, 2))
         self.calibration_count = np.zeros(B, dtype=int)
         self.time_calibrating_s = np.zeros(B)
         self.time_since_calibration_s = np.zeros((B, N))
@@ -102,14 +102,14 @@ class BatchedSystem:
         self._anchor_res = np.zeros((B, w, N))
         self._hist = np.zeros(B, dtype=int)
         # First calibration of every copy (paper rules), robots moving meanwhile: one cohort.
-        true_start = self.anchors_true.copy()
         self._start_rounds(np.arange(B))
         (cohort,) = self._cohorts.values()
         while not cohort.done:
             self._advance_world()
-        true_mid = 0.5 * (true_start + self.anchors_true)
+        path = cohort.path
+        true_mid, est_mid, drift_mid = path.midpoint_truth(), path.midpoint_estimates(), path.midpoint_drift()
         mean, std, count = self._round_statistics(cohort)
-        est_start, est_now = self.est_at_round_start, self.anchors_est
+        est_now = self.anchors_est
         complete, pairs, dist, var = symmetric_arrays(mean, count, self.range_std_m)
         results: list = [None] * B
         rows = np.flatnonzero(complete)
@@ -131,13 +131,13 @@ class BatchedSystem:
         rot, origin = rigid_align_batch(true_mid, positions)  # estimate = truth @ R.T + t, per copy
         rot[failed], origin[failed] = np.eye(2), 0.0
         self.frame_rot, self.frame_origin = rot, -np.einsum("bji,bj->bi", rot, origin)
-        since_mid = np.einsum("bnj,bij->bni", est_now - 0.5 * (est_start + est_now), rot)
+        since_mid = np.einsum("bnj,bij->bni", est_now - est_mid, rot)
         batched = np.array([not failed[k] and isinstance(r, BatchedCalibration) for k, r in enumerate(results)])
         if batched.any():
             ks = np.flatnonzero(batched)
-            self._apply_many(ks, [results[k] for k in ks], since_mid[ks])
+            self._apply_many(ks, [results[k] for k in ks], since_mid[ks], _drift_rows(drift_mid, self.N, ks))
         for k in np.flatnonzero(~failed & ~batched):
-            self._apply(k, results[k], since_mid[k])
+            self._apply(k, results[k], since_mid[k], _drift_rows(drift_mid, self.N, [k]))
         self._end_cohort(cohort)
         self._fix_tags(np.ones(B, dtype=bool), cold=True)
 
@@ -189,6 +189,8 @@ class BatchedSystem:
         after = self.anchors_true
         for cohort in running:
             cohort.advance(t0, self.time_s, before[cohort.copies], after[cohort.copies], self.range_model, self.rng)
+            cohort.path.record(self.time_s, self.anchors_est[cohort.copies], self.odometry.snapshot(cohort.robots),
+                               after[cohort.copies])
 
     # -- calibration rounds: copies that start on the same step share a schedule (a cohort) --------
     def _start_rounds(self, copies: np.ndarray) -> None:
@@ -197,8 +199,10 @@ class BatchedSystem:
         self._cohorts[self._next_cohort] = cohort
         self._cohort_of[copies] = self._next_cohort
         self._next_cohort += 1
-        self.est_at_round_start[copies] = self.anchors_est[copies]
-        self.odometry.mark_round_start(self._robots_of(copies))
+        # the estimated path through the round: its midpoint is where the solution is placed
+        cohort.robots = self._robots_of(copies)
+        cohort.path = RoundPath(self.time_s, self.anchors_est[copies], self.odometry.snapshot(cohort.robots),
+                                self.anchors_true[copies])
 
     def _end_cohort(self, cohort: RoundCohort) -> None:
         del self._cohorts[int(self._cohort_of[cohort.copies[0]])]
@@ -209,9 +213,7 @@ class BatchedSystem:
         finished cohort, (C, N, N) each: the single env's round result, for all copies at once."""
         mean, std, count = cohort.pair_statistics()
         mean, std = self.range_model.correct(mean), self.range_model.correct_std(std)
-        mean = cohort.carry_to_midpoint(mean, self.est_at_round_start[cohort.copies], self.anchors_est[cohort.copies],
-                                        self.time_s)
-        return mean, std, count
+        return cohort.path.carry(mean, cohort.pair_mean_times_s()), std, count
 
     def _finish_cohort(self, cohort: RoundCohort) -> np.ndarray:
         """Solve the rounds of a finished cohort: the usual case (every pair, a fit the verdict
@@ -220,7 +222,7 @@ class BatchedSystem:
         copies = cohort.copies
         mean, std, count = self._round_statistics(cohort)
         self._end_cohort(cohort)
-        est_mid = 0.5 * (self.est_at_round_start[copies] + self.anchors_est[copies])
+        est_mid, drift_mid = cohort.path.midpoint_estimates(), cohort.path.midpoint_drift()
         complete, pairs, dist, var = symmetric_arrays(mean, count, self.range_std_m)
         results: list = [None] * len(copies)
         rows = np.flatnonzero(complete)
@@ -234,7 +236,8 @@ class BatchedSystem:
         ok = np.array([r is not None for r in results], dtype=bool)
         if ok.any():
             rows = np.flatnonzero(ok)
-            self._apply_many(copies[rows], [results[r] for r in rows], self.anchors_est[copies[rows]] - est_mid[rows])
+            self._apply_many(copies[rows], [results[r] for r in rows], self.anchors_est[copies[rows]] - est_mid[rows],
+                             _drift_rows(drift_mid, self.N, rows))
         for row, k in enumerate(copies):
             if ok[row]:
                 continue
@@ -242,12 +245,11 @@ class BatchedSystem:
                 matrix = RangeMatrix(mean[row], std[row], count[row])
             except LocalizationError:  # as the single env: keep odometry, report the failure
                 continue
-            ok[row] = self._finish_round(k, matrix)
+            ok[row] = self._finish_round(k, matrix, est_mid[row], _drift_rows(drift_mid, self.N, [row]))
         return ok
 
-    def _finish_round(self, k: int, matrix) -> bool:
+    def _finish_round(self, k: int, matrix, est_mid: np.ndarray, drift_mid: dict) -> bool:
         solver = self.config.solver
-        est_mid = 0.5 * (self.est_at_round_start[k] + self.anchors_est[k])
         try:
             result = calibrate_anchors(matrix, dim=2, prior=est_mid,
                                        gauge=solver.gauge, loss=solver.loss, f_scale=solver.f_scale_sigmas,
@@ -257,10 +259,10 @@ class BatchedSystem:
             return False
         if result.status == "not_converged":  # as the single env: keep odometry, report the failure
             return False
-        self._apply(k, result, self.anchors_est[k] - est_mid)
+        self._apply(k, result, self.anchors_est[k] - est_mid, drift_mid)
         return True
 
-    def _apply_many(self, ks: np.ndarray, results: list, since_mid: np.ndarray) -> None:
+    def _apply_many(self, ks: np.ndarray, results: list, since_mid: np.ndarray, drift_mid: dict) -> None:
         """:meth:`_apply` for many copies' batched results at once."""
         n = self.N
         positions = np.stack([r.positions for r in results])
@@ -278,10 +280,10 @@ class BatchedSystem:
         self.calibration_count[ks] += 1
         self.time_since_calibration_s[ks] = 0.0
         self.steps_since_calibration[ks] = 0
-        self._restart_drift(ks)
+        self.odometry.restart_drift(self._robots_of(ks), since=drift_mid)
         self._hist[ks] = 0
 
-    def _apply(self, k: int, result, since_mid: np.ndarray) -> None:
+    def _apply(self, k: int, result, since_mid: np.ndarray, drift_mid: dict) -> None:
         self.anchors_est[k] = result.positions + since_mid
         # as the single env: a poor fit's covariance scaled by its reduced chi-square
         scale = max(1.0, result.chi2 / max(result.dof, 1)) if result.status == "poor_fit" else 1.0
@@ -291,7 +293,7 @@ class BatchedSystem:
         self.calibration_count[k] += 1
         self.time_since_calibration_s[k] = 0.0
         self.steps_since_calibration[k] = 0
-        self._restart_drift(k)
+        self.odometry.restart_drift(self._robots_of([k]), since=drift_mid)
         self._hist[k] = 0
 
     # -- tags --------------------------------------------------------------------------------------
@@ -300,9 +302,6 @@ class BatchedSystem:
         mask[copies] = True
         return np.repeat(mask, self.N)
 
-    def _restart_drift(self, copies) -> None:
-        # the solution is valid at the round's midpoint: the second half's drift stays predicted
-        self.odometry.restart_drift(self._robots_of(copies), from_round_midpoint=True)
 
     def predicted_anchor_var_m2(self) -> np.ndarray:
         return self.calibration_var_m2 + self.odometry.expected_drift_var_m2(2).reshape(self.B, self.N)
@@ -391,3 +390,8 @@ class BatchedSystem:
                    + cfg.calibration_start_cost * report["round_started"])
         return reward, tag, anchor
 
+
+def _drift_rows(drift: dict, n: int, rows) -> dict:
+    """The odometry snapshot of a cohort (its copies' robots, copy-major) for some of its
+    copies (``rows``, increasing): aligned with ``BatchedSystem._robots_of`` of those copies."""
+    return {name: v.reshape(-1, n)[np.asarray(rows)].reshape(-1) for name, v in drift.items()}

@@ -33,37 +33,10 @@ from uwb_env.localization.relocation import relocate_anchor
 from uwb_env.measurements import pool_rounds
 from uwb_env.sim import RangeModel, World
 from uwb_env.sim.planar_errors import planar_errors
+from uwb_env.sim.round_path import RoundPath, pair_mean_times_s
 
 # CalibrationResult.status values, in the order of the ``calibration_fit`` code
 CALIBRATION_FIT_NAMES = ("ok", "poor_fit", "not_converged")
-
-
-def carry_to_round_midpoint(matrix, finished, est_start: np.ndarray, est_now: np.ndarray, now_s: float):
-    """Each ordered pair's mean range carried to the round's midpoint geometry.
-
-    The pairs are ranged one after another while the robots move (a round lasts about a
-    second at ~0.5 m/s), so the matrix mixes geometries tens of centimetres apart: no single
-    shape explains it within the range noise, and the fit test would flag most rounds. With
-    each anchor's odometry velocity over the round (``est_start`` -> ``est_now``) and the
-    schedule's exchange times, a pair ranged at t is corrected by its range rate:
-    r_mid = r - u_ij . (v_i - v_j) (t - t_mid). Rounds without exchange times (hardware) are
-    returned unchanged."""
-    times = getattr(finished, "times_s", None)
-    span = now_s - finished.start_time_s
-    if times is None or span <= 0:
-        return matrix
-    n = len(est_now)
-    t_sum, t_cnt = np.zeros((n, n)), np.zeros((n, n))
-    np.add.at(t_sum, (finished.initiator, finished.responder), times)
-    np.add.at(t_cnt, (finished.initiator, finished.responder), 1.0)
-    t_pair = t_sum / np.maximum(t_cnt, 1.0) - (finished.start_time_s + 0.5 * span)
-    velocity = (est_now - est_start) / span
-    est_mid = 0.5 * (est_start + est_now)
-    diff = est_mid[:, None, :] - est_mid[None, :, :]
-    dist = np.sqrt((diff * diff).sum(-1))
-    np.fill_diagonal(dist, 1.0)
-    rate = ((diff / dist[..., None]) * (velocity[:, None, :] - velocity[None, :, :])).sum(-1)
-    return replace(matrix, mean_m=matrix.mean_m - rate * t_pair)
 
 
 def _first_rank(result) -> tuple:
@@ -151,20 +124,30 @@ class LocalizationSystem:
         self._anchor_residual_hist = np.zeros((w, n))
         self._hist_index = 0
         self.last_round_links: np.ndarray | None = None
-        true_start, est_start = self.world.anchors_true.copy(), self.world.anchors_est.copy()
+        self._round_path = self._new_round_path()  # the first calibration's rounds, all of them
         result = self._first_calibration()
         self._record_verdict(result)
-        # The solution describes the robots around the round's midpoint; the solver's frame
+        # The solution describes the robots at the rounds' midpoint; the solver's frame
         # becomes the estimate frame: est = R (world - origin).
+        path = self._round_path
         if self.ground_truth:
-            true_mid = 0.5 * (true_start + self.world.anchors_true)
-            rot, trans = rigid_align(true_mid, result.positions)
+            rot, trans = rigid_align(path.midpoint_truth(), result.positions)
         else:  # on hardware the first calibration's frame simply is the frame
             rot, trans = np.eye(dim), np.zeros(dim)
         self.world.set_estimate_frame(rot, -rot.T @ trans)
-        odometry_since_mid = (self.world.anchors_est - 0.5 * (est_start + self.world.anchors_est)) @ rot.T
-        self._apply_calibration(result, odometry_since_mid)
+        odometry_since_mid = (self.world.anchors_est - path.midpoint_estimates()) @ rot.T
+        self._apply_calibration(result, odometry_since_mid, path.midpoint_drift())
         self._fix_tags()
+
+    def _new_round_path(self) -> RoundPath:
+        world = self.world
+        return RoundPath(world.time_s, world.anchors_est, world.odometry.snapshot(),
+                         world.anchors_true if self.ground_truth else None)
+
+    def _record_round_step(self) -> None:
+        world = self.world
+        self._round_path.record(world.time_s, world.anchors_est, world.odometry.snapshot(),
+                                world.anchors_true if self.ground_truth else None)
 
     # Rounds the first calibration may take: each extra round adds its exchanges to the pool.
     FIRST_CALIBRATION_MAX_ROUNDS = 6
@@ -177,22 +160,25 @@ class LocalizationSystem:
         would simply keep ranging: each further round is pooled with the earlier ones (more
         exchanges per pair, less noise) until the shape is determined.
         """
-        cfg, pooled, best, last = self.config, None, None, None
+        cfg, best, last = self.config, None, None
+        rounds = []  # (corrected matrix, its pair times) of every round so far
         for _ in range(self.FIRST_CALIBRATION_MAX_ROUNDS):
             world = self.world
-            self._est_at_round_start = world.anchors_est.copy()
-            world.odometry.mark_round_start()
             world.start_calibration_round()
             while not world.round.done:
                 world.step()
+                self._record_round_step()
             finished = world.finish_calibration_round()
             try:
-                matrix = self._to_round_midpoint(world.round_correction.correct_matrix(finished.result()), finished,
-                                                 0.5 * (self._est_at_round_start + world.anchors_est))
+                rounds.append((world.round_correction.correct_matrix(finished.result()), self._pair_times(finished)))
             except LocalizationError as err:
                 last = err
                 continue
-            pooled = matrix if pooled is None else pool_rounds(pooled, matrix)
+            # every round carried to the midpoint of all of them (the solution's moment)
+            pooled = None
+            for matrix, times in rounds:
+                carried = replace(matrix, mean_m=self._round_path.carry(matrix.mean_m, times))
+                pooled = carried if pooled is None else pool_rounds(pooled, carried)
             try:
                 result = calibrate_anchors(
                     pooled, dim=self.dim, loss=cfg.solver.loss,
@@ -236,14 +222,12 @@ class LocalizationSystem:
         round_anchor = -1
         if started:
             world.start_calibration_round()
-            self._est_at_round_start = world.anchors_est.copy()
-            world.odometry.mark_round_start()
+            self._round_path = self._new_round_path()
         elif not running and anchor_requests is not None and anchor_requests.any():
             var = np.where(anchor_requests, self.predicted_anchor_var_m2(), -np.inf)
             round_anchor = int(np.argmax(var))
             world.start_calibration_round(initiators=[round_anchor])
-            self._est_at_round_start = world.anchors_est.copy()
-            world.odometry.mark_round_start()
+            self._round_path = self._new_round_path()
             started = True
         t0 = world.time_s
         world.step()
@@ -252,6 +236,7 @@ class LocalizationSystem:
         report = StepReport(started, False, ignored, 0.0, round_anchor=round_anchor)
         if world.round is not None:
             rnd = world.round
+            self._record_round_step()
             busy_until = min(rnd.end_time_s, world.time_s)
             report.calibrating_fraction = (busy_until - max(rnd.start_time_s, t0)) / dt
             self.time_calibrating_s += report.calibrating_fraction * dt
@@ -281,13 +266,15 @@ class LocalizationSystem:
             return self._finish_anchor_round(finished)
         solver = self.config.solver
         # Motion compensation: the ranges were taken while the robots moved, so the solution
-        # describes them around the round's midpoint. Solve against the mid-round estimates and
-        # carry the result to now with the odometry accumulated since then.
-        est_mid = 0.5 * (self._est_at_round_start + self.world.anchors_est)
+        # describes them at the round's midpoint (each pair carried there along the estimated
+        # path). Solve against the mid-round estimates and carry the result to now with the
+        # odometry accumulated since then.
+        path = self._round_path
+        est_mid = path.midpoint_estimates()
         try:
             matrix = self.world.round_correction.correct_matrix(finished.result())  # hardware: raises on failure
             result = calibrate_anchors(
-                self._to_round_midpoint(matrix, finished, est_mid), dim=self.dim, prior=est_mid, gauge=solver.gauge,
+                self._to_round_midpoint(matrix, finished), dim=self.dim, prior=est_mid, gauge=solver.gauge,
                 loss=solver.loss, f_scale=solver.f_scale_sigmas, range_std_m=self.range_std_m,
                 prior_std_m=np.sqrt(np.maximum(self.predicted_anchor_var_m2(), self.range_std_m**2)),
             )
@@ -296,7 +283,7 @@ class LocalizationSystem:
         self._record_verdict(result)
         if result.status == "not_converged":  # no solution to speak of: keep odometry, say why
             return f"calibration not converged: {result.message}"
-        self._apply_calibration(result, self.world.anchors_est - est_mid)
+        self._apply_calibration(result, self.world.anchors_est - est_mid, path.midpoint_drift())
         return None
 
     def _record_verdict(self, result) -> None:
@@ -304,19 +291,25 @@ class LocalizationSystem:
         self.calibration_ambiguous = bool(result.ambiguous)
         self.calibration_chi2_per_dof = result.chi2 / result.dof if result.dof > 0 else 0.0
 
-    def _to_round_midpoint(self, matrix, finished, est_mid: np.ndarray):
-        return carry_to_round_midpoint(matrix, finished, self._est_at_round_start, self.world.anchors_est,
-                                       self.world.time_s)
+    def _pair_times(self, finished) -> np.ndarray | None:
+        times = getattr(finished, "times_s", None)  # hardware rounds report the matrix only
+        if times is None:
+            return None
+        return pair_mean_times_s(self.n_anchors, times, finished.initiator, finished.responder)
+
+    def _to_round_midpoint(self, matrix, finished):
+        return replace(matrix, mean_m=self._round_path.carry(matrix.mean_m, self._pair_times(finished)))
 
     def _finish_anchor_round(self, finished) -> str | None:
         """One anchor re-located against the others (their estimates and covariances as known up
         to that covariance, its own odometry as the prior); the others keep their estimates."""
         (i,) = finished.initiators
         others = np.flatnonzero(np.arange(self.n_anchors) != i)
-        est_mid = 0.5 * (self._est_at_round_start + self.world.anchors_est)
+        path = self._round_path
+        est_mid = path.midpoint_estimates()
         cov = self._predicted_covariance()
         try:
-            matrix = self.world.round_correction.correct_matrix(finished.result())
+            matrix = self._to_round_midpoint(self.world.round_correction.correct_matrix(finished.result()), finished)
             count = matrix.count[i, others]
             ranges = np.where(count > 0, matrix.mean_m[i, others], np.nan)
             res = relocate_anchor(ranges, est_mid[others], self.range_std_m**2 / np.maximum(count, 1),
@@ -331,7 +324,7 @@ class LocalizationSystem:
         self.anchor_round_count += 1
         self.time_since_calibration_s[i] = 0.0
         self.steps_since_calibration[i] = 0
-        self.world.odometry.restart_drift(i, from_round_midpoint=True)
+        self.world.odometry.restart_drift(i, since={k: v[i] for k, v in path.midpoint_drift().items()})
         return None
 
     def _predicted_covariance(self) -> np.ndarray:
@@ -341,7 +334,7 @@ class LocalizationSystem:
         drift = np.maximum(pred - self.calibration_var_m2, 0.0) / self.dim + self.range_std_m**2
         return self.anchor_cov + drift[:, None, None] * self._eye
 
-    def _apply_calibration(self, result, odometry_since_mid: np.ndarray) -> None:
+    def _apply_calibration(self, result, odometry_since_mid: np.ndarray, drift_at_mid: dict) -> None:
         self.world.anchors_est = result.positions + odometry_since_mid
         # A poor fit (e.g. an NLOS-biased pair the few spare pairs cannot single out) is still the
         # best shape the ranges give, but its noise-model covariance is too small: scale it by
@@ -354,7 +347,7 @@ class LocalizationSystem:
         self.calibration_count += 1
         self.time_since_calibration_s[:] = 0.0
         self.steps_since_calibration[:] = 0
-        self.world.odometry.restart_drift(from_round_midpoint=True)
+        self.world.odometry.restart_drift(since=drift_at_mid)
         # Residuals of fixes against the old estimates say nothing about the new ones.
         self._hist_index = 0
 

@@ -46,10 +46,8 @@ class OdometryModel:
         self._sum_a = np.zeros(n)
         self._sum_b = np.zeros(n, dtype=complex)
         self._sum_c = np.zeros(n)
-        # the accumulators at the start of each robot's current calibration round
-        self._mark = {name: getattr(self, name).copy() for name in self._ROUND_MARKED}
 
-    _ROUND_MARKED = ("heading_var_rad2", "_dist", "_steps", "_net", "_sum_a")
+    _ACCUMULATORS = ("heading_var_rad2", "_dist", "_steps", "_net", "_sum_a", "_sum_b", "_sum_c")
 
     def estimated_displacement(
         self, delta: np.ndarray, turn_rad: np.ndarray, dt_s: float, rng: np.random.Generator
@@ -113,37 +111,37 @@ class OdometryModel:
         planar = np.ascontiguousarray(np.asarray(displacement, dtype=float)[:, :2]).view(np.complex128)[:, 0]
         self._accumulate(planar, self._yaw_var_per_m * np.abs(planar))
 
-    def mark_round_start(self, robots=slice(None)) -> None:
-        """A calibration round involving ``robots`` starts now (see :meth:`restart_drift`)."""
-        for name in self._ROUND_MARKED:
-            self._mark[name][robots] = getattr(self, name)[robots]
+    def snapshot(self, robots=slice(None)) -> dict:
+        """The drift accumulators of ``robots`` now (for :meth:`restart_drift`'s ``since``)."""
+        return {name: getattr(self, name)[robots].copy() for name in self._ACCUMULATORS}
 
-    def restart_drift(self, robots=slice(None), from_round_midpoint: bool = False) -> None:
+    def restart_drift(self, robots=slice(None), since: dict | None = None) -> None:
         """The estimates of ``robots`` (an index or mask) were just reset by a calibration.
 
-        ``from_round_midpoint``: the calibration solved for the positions at the midpoint of the
-        round that started at :meth:`mark_round_start` (ranges carried there), and the estimates
-        are that solution plus the odometry since. The drift of that second half of the round
-        stays in the prediction: half the round's path, net displacement and heading increments
-        (the increments spread evenly along a straight segment), the heading variance at the
-        midpoint carried. At 16 anchors a round lasts seconds; zeroing it made the fresh
-        estimates look several times better than they are.
+        ``since``: a :meth:`snapshot` of the same robots. The calibration solved for the
+        positions at that moment (a round's midpoint: ranges carried there) and the estimates
+        are that solution plus the odometry since, so the drift since the snapshot stays
+        predicted: the accumulators are re-centred on it (exactly: P -> P - P_s,
+        B -> (B - B_s) - (A - A_s) P_s, C -> (C - C_s) - 2 Re(conj(P_s) (B - B_s)) + (A - A_s) |P_s|^2,
+        the heading variance then carried). Without it the drift restarts from zero.
         """
-        if not from_round_midpoint:
+        if since is None:
             self._h0[robots] = self.heading_var_rad2[robots]
             for name in ("_dist", "_steps", "_net", "_sum_a", "_sum_b", "_sum_c"):
                 getattr(self, name)[robots] = 0.0
             return
-        mark = self._mark
-        half_a = 0.5 * (self._sum_a[robots] - mark["_sum_a"][robots]) if not self._uniform else 0.0
-        half_p = 0.5 * (self._net[robots] - mark["_net"][robots])
-        self._h0[robots] = self.heading_var_rad2[robots] - half_a
-        self._dist[robots] = 0.5 * (self._dist[robots] - mark["_dist"][robots])
-        self._steps[robots] = 0.5 * (self._steps[robots] - mark["_steps"][robots])
-        self._net[robots] = half_p
-        self._sum_a[robots] = half_a
-        self._sum_b[robots] = 0.5 * half_a * half_p
-        self._sum_c[robots] = half_a * (half_p.real**2 + half_p.imag**2) / 3.0
+        p_s = since["_net"]
+        d_a = self._sum_a[robots] - since["_sum_a"]
+        d_b = self._sum_b[robots] - since["_sum_b"]
+        d_c = self._sum_c[robots] - since["_sum_c"]
+        cross = p_s.real * d_b.real + p_s.imag * d_b.imag
+        self._h0[robots] = since["heading_var_rad2"]
+        self._dist[robots] = self._dist[robots] - since["_dist"]
+        self._steps[robots] = self._steps[robots] - since["_steps"]
+        self._net[robots] = self._net[robots] - p_s
+        self._sum_a[robots] = d_a
+        self._sum_b[robots] = d_b - d_a * p_s
+        self._sum_c[robots] = d_c - 2.0 * cross + d_a * (p_s.real**2 + p_s.imag**2)
 
     def expected_drift_var_m2(self, dim: int = 2, robots=slice(None)) -> np.ndarray:
         """(n,) (or of ``robots``, an index) expected variance (summed over axes) of each robot's drift since its last

@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from uwb_env.sim.calibration_round import CalibrationRound, RoundTiming
+from uwb_env.sim.round_path import pair_mean_times_s
 
 
 class RoundCohort(CalibrationRound):
@@ -48,25 +49,4 @@ class RoundCohort(CalibrationRound):
 
     def pair_mean_times_s(self) -> np.ndarray:
         """(N, N) mean scheduled time of each ordered pair's exchanges (the diagonal 0)."""
-        n, k = self.n_anchors, self.k
-        t = np.zeros((n, n))
-        t[self.initiator[::k], self.responder[::k]] = self.times_s.reshape(-1, k).mean(1)
-        return t
-
-    def carry_to_midpoint(self, mean_m: np.ndarray, est_start: np.ndarray, est_now: np.ndarray,
-                          now_s: float) -> np.ndarray:
-        """:func:`uwb_env.system.carry_to_round_midpoint` for the whole cohort: (C, N, N) means
-        carried to the round's midpoint geometry along each anchor's odometry velocity."""
-        span = now_s - self.start_time_s
-        if span <= 0:
-            return mean_m
-        t_pair = self.pair_mean_times_s() - (self.start_time_s + 0.5 * span)
-        np.fill_diagonal(t_pair, 0.0)
-        velocity = (est_now - est_start) / span
-        est_mid = 0.5 * (est_start + est_now)
-        diff = est_mid[:, :, None, :] - est_mid[:, None, :, :]
-        dist = np.sqrt((diff * diff).sum(-1))
-        idx = np.arange(self.n_anchors)
-        dist[:, idx, idx] = 1.0
-        rate = ((diff / dist[..., None]) * (velocity[:, :, None, :] - velocity[:, None, :, :])).sum(-1)
-        return mean_m - rate * t_pair
+        return pair_mean_times_s(self.n_anchors, self.times_s, self.initiator, self.responder)
