@@ -160,3 +160,19 @@ def test_bad_input_raises_a_typed_error_naming_the_field(call, error, field):
 def test_range_matrix_accepts_lists():
     m = RangeMatrix([[np.nan, 1.0], [1.0, np.nan]], [[np.nan, 0.1], [0.1, np.nan]], [[0, 5], [5, 0]])
     assert m.mean_m.shape == (2, 2) and m.count.dtype.kind == "i"
+
+
+def test_3d_first_calibration_with_most_pairs_dropped_raises_only_typed_errors():
+    # 4 anchors in 3D, 90 % of the exchanges dropped: the lifted-MDS start can find fewer than 3
+    # axes; that is a geometry error to report (reset pools rounds, then says so), not an IndexError.
+    from uwb_env.config import EnvConfig
+    from uwb_env.localization import LocalizationError
+    from uwb_env.system import LocalizationSystem
+
+    cfg = EnvConfig()
+    cfg = cfg.replace(sim=cfg.sim.replace(dim=3, n_anchors=4, ranging=cfg.sim.ranging.replace(dropout_probability=0.9)))
+    for seed in (13, 14):
+        try:
+            LocalizationSystem(cfg).reset(np.random.default_rng(seed))
+        except LocalizationError:
+            pass

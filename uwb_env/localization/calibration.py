@@ -741,6 +741,9 @@ def _lifted_mds(full: np.ndarray, dim: int = 3) -> np.ndarray:
     # would outrank the real last axis and lift nothing
     real_axes = np.abs(vecs.sum(0)) < 0.5 * np.sqrt(n)
     order = [k for k in np.argsort(vals)[::-1] if real_axes[k]][:dim]
+    if len(order) < dim or not np.all(np.isfinite(filled)):
+        # e.g. 4 anchors in 3D with most pairs dropped: no dim axes to lift along
+        raise GeometryError(f"the ranges give fewer than {dim} axes to start from: too few pairs for a {dim}D shape")
     scale = np.sqrt(np.maximum(vals[order], 0.0))
     for axis in range(1, dim):  # a definite lift: 5 % of the largest extent
         scale[axis] = max(scale[axis], 0.05 * scale[0])
