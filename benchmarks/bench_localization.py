@@ -50,7 +50,7 @@ from uwb_env.localization import aligned_errors, calibrate_anchors, crlb_anchors
 from uwb_env.localization.calibration import _free_mask, default_range_std_m, trilaterate_initial  # noqa: E402
 from uwb_env.localization.errors import LocalizationError  # noqa: E402
 from uwb_env.localization.models import PairRangeModel  # noqa: E402
-from uwb_env.localization.pair_solver import pair_structure, solve_pair_ranges  # noqa: E402
+from uwb_env.localization.pair_solver import _structure, pair_structure, solve_pair_ranges  # noqa: E402
 from uwb_env.measurements import RangeMatrix  # noqa: E402
 
 SIGMA = default_range_std_m()
@@ -196,8 +196,12 @@ def our_solve(problem, cached: bool = True) -> np.ndarray:
     structure (index arrays of the layout) is cached per layout, as in the calibration;
     ``cached=False`` builds it anew."""
     pairs, dist, var, n, x0, free = problem
-    build = pair_structure if cached else pair_structure.__wrapped__
-    return solve_pair_ranges(build(pairs, n, 2, free), x0, dist, 1.0 / var).positions
+    if cached:
+        structure = pair_structure(pairs, n, 2, free)
+    else:
+        structure = _structure.__wrapped__(n, 2, np.ascontiguousarray(pairs, dtype=np.int64).tobytes(),
+                                           np.ascontiguousarray(free, dtype=bool).tobytes())
+    return solve_pair_ranges(structure, x0, dist, 1.0 / var).positions
 
 
 def main(argv=None) -> dict:
