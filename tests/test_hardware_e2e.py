@@ -116,7 +116,7 @@ def test_unplug_mid_round_then_replug_the_episode_continues(tmp_path):
         world.close()
         rec.close()
     assert step == 40
-    assert len(failed) == 1 and "round 2 failed" in failed[0]  # round 1 ran in reset
+    assert len(failed) == 1 and "round 2 failed" in failed[0], failed  # round 1 ran in reset
     assert finished and finished[0] > 20  # the round after the replug succeeded
     assert reconnections >= 1
     events = [r["event"] for r in read_session(session) if r["dir"] == "event"]

@@ -41,15 +41,25 @@ def _anchor(faults=None, round_s=0.02, port=None):
     return emu, device, emu.add("anchor", device, port)
 
 
+def _boot(device, transport, quiet_s=0.3):
+    """Power-cycle the emulated board now that the port is open and read its banner, then
+    until the port is quiet: pyserial flushes the input buffer on open, but the board's first
+    banner may still arrive after that (a second banner the driver would see after its S)."""
+    device.reboot()
+    transport.read_until(b"INIT\r\n", 2.0)
+    last = time.monotonic()
+    while time.monotonic() - last < quiet_s:
+        if transport.read_available():
+            last = time.monotonic()
+        time.sleep(0.01)
+
+
 def test_a_slow_anchor_never_gets_a_matrix_credited_to_the_wrong_request():
     # 10x slower rounds (0.2 s); every other request gives up after 0.08 s, while the firmware
     # (latched, no abort) still finishes that round and prints its matrix later.
     emu, device, url = _anchor(Faults(round_slowdown=10.0))
     with emu, SerialTransport(url) as transport:
-        # pyserial flushes the input buffer on open: a banner printed before that is gone, so
-        # power-cycle the emulated board now that the port is open, and wait for its banner
-        device.reboot()
-        transport.read_until(b"INIT\r\n", 2.0)
+        _boot(device, transport)
         driver = TiersAnchorDriver(transport, round_timeout_s=0.08, drain_quiet_s=5.0)
         credited = failed = 0
         for request in range(20):
@@ -71,10 +81,7 @@ def test_a_slow_anchor_never_gets_a_matrix_credited_to_the_wrong_request():
 def test_back_to_back_rounds_lose_no_start_in_the_flush_window():
     emu, device, url = _anchor()
     with emu, SerialTransport(url) as transport:
-        # pyserial flushes the input buffer on open: a banner printed before that is gone, so
-        # power-cycle the emulated board now that the port is open, and wait for its banner
-        device.reboot()
-        transport.read_until(b"INIT\r\n", 2.0)
+        _boot(device, transport)
         driver = TiersAnchorDriver(transport, round_timeout_s=1.0)
         for _ in range(8):
             driver.run_round()  # each S only after 'Waiting for Start order'
@@ -206,3 +213,48 @@ def test_recordings_keep_sessions_apart_and_a_torn_line_costs_no_record(tmp_path
     assert [[bytes.fromhex(r["hex"]) for r in s] for s in sessions] == [[b"abc", b"def"], [b"xyz"]]
     assert [bytes.fromhex(r["hex"]) for r in read_session(path)] == [b"xyz"]
     assert [bytes.fromhex(r["hex"]) for r in read_session(path, 0)] == [b"abc", b"def"]
+
+
+class _ScriptedPort:
+    """Bytes in, bytes out, in the order a test scripts them (no timing)."""
+
+    url = "scripted://anchor1"
+
+    def __init__(self):
+        self.sent, self.incoming = [], []
+
+    def write(self, data, wait_s=None):
+        self.sent.append(bytes(data))
+
+    def read_available(self):
+        return self.incoming.pop(0) if self.incoming else b""
+
+
+def test_a_boot_banner_read_after_the_start_never_lets_its_round_be_credited_to_the_next_request():
+    # The board rebooted just before the host's S and its banner was still in flight: the S
+    # started round 1 after the boot. Seen from the host the banner follows the S, like a
+    # reboot after it. If the driver took it as "ready", the next S would be absorbed by round
+    # 1 (the start flag is latched) and round 1's matrix credited to request 2.
+    from uwb_env.hardware.tiers import BANNER_INIT, ROLE_SWAP, encode_matrix
+
+    def matrix(round_id):
+        mean = np.full((4, 4), 5.0) - 5.0 * np.eye(4)
+        std = np.full((4, 4), 0.02)
+        std[0, 1] = round_id / 100.0
+        return encode_matrix(mean, std)
+
+    port = _ScriptedPort()
+    driver = TiersAnchorDriver(port, round_timeout_s=60.0, drain_quiet_s=60.0)
+    driver.start_round()
+    assert port.sent == [b"S"]
+    port.incoming.append((BANNER_INIT + "\r\n").encode())
+    with pytest.raises(RoundFailed):
+        driver.poll()
+    driver.start_round()
+    assert port.sent == [b"S"]  # held: round 1 may be running and would absorb it
+    port.incoming.append((ROLE_SWAP + "\r\n").encode() + matrix(1))
+    assert driver.poll() is None and driver.stale_matrices == 1
+    assert port.sent == [b"S", b"S"]  # sent once the firmware said it waits for a start
+    port.incoming.append(matrix(2))
+    got = driver.poll()
+    assert got is not None and round(got.std_m[0, 1] * 100) == 2

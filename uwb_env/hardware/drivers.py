@@ -51,10 +51,13 @@ class TiersAnchorDriver:
     - ``RUNNING``: the next matrix belongs to this request. It moves to ``SETTLING`` (the
       firmware is about to flush; an ``S`` now would be lost).
     - ``SETTLING``: waiting for ``Waiting for Start order`` (or the banner) -> ``READY``.
-    - ``DRAINING``: a request timed out or was abandoned while the firmware may still run it:
-      a matrix that arrives now is stale (discarded, counted in ``stale_matrices``); ``READY``
-      again on ``Waiting for Start order`` or the banner, or after ``drain_quiet_s`` without a
-      byte from the device (a hung round that will never print).
+    - ``DRAINING``: a request timed out or was abandoned while the firmware may still run it,
+      or the boot banner arrived after its ``S`` without a power cycle of the port in between
+      (a reboot after the ``S``, or one before it whose banner was still in flight: the ``S``
+      may have started a round): a matrix that
+      arrives now is stale (discarded, counted in ``stale_matrices``); ``READY`` again on
+      ``Waiting for Start order`` or the banner, or after ``drain_quiet_s`` without a byte from
+      the device (a hung round that will never print).
 
     A start requested while not ``READY`` is held and sent as soon as the firmware is ready;
     its timeout runs from the request, so a device that never becomes ready fails each round
@@ -76,6 +79,7 @@ class TiersAnchorDriver:
         self.stale_matrices = 0  # matrices of timed-out or abandoned requests, discarded
         self._deadline: float | None = None
         self._pending = False  # a request whose S waits for the firmware to be ready
+        self._reconnections_at_start = 0  # the port's reconnections when the last S went out
         self._last_rx = time.monotonic()
 
     @property
@@ -151,12 +155,25 @@ class TiersAnchorDriver:
                         matrix = message
                 elif isinstance(message, RangeMatrixMessage):
                     self.stale_matrices += 1
-            elif isinstance(message, (WaitingForStart, Banner)):
-                if self.state == self.RUNNING:  # the round ended (or the device rebooted): no matrix
+            elif isinstance(message, WaitingForStart):
+                if self.state == self.RUNNING:  # the round ended without a matrix
                     self._deadline = None
-                    what = "rebooted" if isinstance(message, Banner) else "ended the round"
-                    failure = f"the firmware {what} without a readable matrix"
+                    failure = "the firmware ended the round without a readable matrix"
                 self.state = self.READY
+            elif isinstance(message, Banner):
+                if self.state == self.RUNNING:
+                    # A boot banner read after our S: the board rebooted after it (the round is
+                    # gone) or before it, the banner still in flight when the S went out (then
+                    # the S started a round whose matrix will come). The bytes cannot tell the
+                    # two apart; the port can: a power cycle (USB unplug) since the S means the S
+                    # died with the board. Otherwise fail the request and drain, so that a matrix
+                    # is never credited to the next request (its S would be absorbed by this round).
+                    self._deadline = None
+                    failure = "the firmware printed its boot banner after the start (rebooted)"
+                    power_cycled = getattr(self.transport, "reconnections", 0) > self._reconnections_at_start
+                    self.state = self.READY if power_cycled else self.DRAINING
+                else:
+                    self.state = self.READY
         if failure is not None:
             raise RoundFailed(self.transport.url, self.rounds_started, failure)
         return matrix
@@ -182,6 +199,7 @@ class TiersAnchorDriver:
     def _send_if_ready(self) -> None:
         if self._pending and self.state == self.READY:
             self.transport.write(START, wait_s=self.port_wait_s)
+            self._reconnections_at_start = getattr(self.transport, "reconnections", 0)
             self._pending = False
             self.starts_sent += 1
             self.state = self.RUNNING
