@@ -127,7 +127,7 @@ class OdometryModel:
         """
         if since is None:
             self._h0[robots] = self.heading_var_rad2[robots]
-            for name in ("_dist", "_steps", "_net", "_sum_a", "_sum_b", "_sum_c"):
+            for name in self._ACCUMULATORS[1:]:  # all but the heading variance, which carries on
                 getattr(self, name)[robots] = 0.0
             return
         p_s = since["_net"]
