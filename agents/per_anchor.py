@@ -5,9 +5,31 @@ They get the same actions as a learned per-anchor scheduler, so comparisons stay
 
 from __future__ import annotations
 
+import numpy as np
+
 from uwb_env.agents.baselines import _FROM_END, _positive
 
 NOTHING, RELOCATE_ME, TEAM_ROUND = 0, 1, 2
+
+
+def threshold_actions(predicted_std_m, threshold_m, team_fraction: float = 0.5) -> np.ndarray:
+    """The per-anchor threshold rule on (..., N) predicted stds (``threshold_m`` broadcast
+    against (...)): -> (..., N) actions. One implementation for the heuristic and for the
+    base of the learned residual scheduler (agents/anchor_set.py)."""
+    pred = np.asarray(predicted_std_m, dtype=np.float64)
+    stale = pred > np.asarray(threshold_m, dtype=np.float64)[..., None]
+    team = stale.sum(-1, keepdims=True) >= team_fraction * pred.shape[-1]
+    return np.where(team, TEAM_ROUND, np.where(stale, RELOCATE_ME, NOTHING))
+
+
+def team_vote(actions, team_fraction: float = 0.5) -> np.ndarray:
+    """(..., N) per-anchor actions with the team-round requests counted as votes: a team round
+    is asked for only when at least ``team_fraction`` of the team votes for it (the threshold
+    rule's own quorum); a vote short of it is a "nothing". The env starts a team round on any
+    request, which on 16 anchors lets one anchor's request take the channel for ~6 s."""
+    actions = np.asarray(actions)
+    quorum = (actions == TEAM_ROUND).sum(-1, keepdims=True) >= team_fraction * actions.shape[-1]
+    return np.where((actions == TEAM_ROUND) & ~quorum, NOTHING, actions)
 
 
 class PerAnchorThresholdPolicy:
@@ -29,7 +51,6 @@ class PerAnchorThresholdPolicy:
 
     def act(self, observations, infos):
         column = _FROM_END["predicted_position_std_m"]
-        stale = {agent: bool(obs[column] > self.threshold_m) for agent, obs in observations.items()}
-        if sum(stale.values()) >= self.team_fraction * len(stale):
-            return {agent: TEAM_ROUND for agent in observations}
-        return {agent: RELOCATE_ME if s else NOTHING for agent, s in stale.items()}
+        agents = list(observations)
+        actions = threshold_actions([observations[a][column] for a in agents], self.threshold_m, self.team_fraction)
+        return {agent: int(x) for agent, x in zip(agents, actions, strict=True)}

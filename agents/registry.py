@@ -28,18 +28,27 @@ def shipped_model(name: str) -> Path:
     return SHIPPED_MODELS / name / "model.zip"
 
 
-def _learned(path: str, dt_s: float):
+def _learned(param: str, dt_s: float):
+    """``learned:<model>`` or, for the per-anchor residual scheduler, ``learned:<model>@<threshold_m>``
+    (the base rule's threshold; default ``anchor_set.DEFAULT_BASE_THRESHOLD_M``)."""
     from uwb_env.agents.learned import LearnedPolicy
 
+    path, at, threshold = param.rpartition("@") if "@" in param else (param, "", "")
+    if at and not threshold:
+        raise ValueError(f"learned:{param}: '@' needs a base threshold in metres, e.g. learned:anchor_set@0.3")
     if "/" not in path and not path.endswith(".zip"):  # a shipped model's name
         path = str(shipped_model(path))
     record = Path(path).with_name("run.json")
     if record.is_file() and json.loads(record.read_text()).get("env") == "anchor_set":
         from uwb_env.agents.anchor_set import AnchorSetPolicy
 
-        policy = AnchorSetPolicy.load(path)  # any team size; per_anchor actions
+        kwargs = {"base_threshold_m": float(threshold)} if threshold else {}
+        policy = AnchorSetPolicy.load(path, **kwargs)  # any team size; per_anchor actions
         policy.dt_s = dt_s
         return policy
+    if threshold:
+        raise ValueError(f"learned:{param}: only the per-anchor scheduler (training.train_anchor_set) takes "
+                         "'@<base threshold>'")
     return LearnedPolicy.load(path)
 
 
@@ -80,7 +89,8 @@ POLICIES: dict[str, tuple[Callable, str]] = {
                   "(default 30), base fixed interval K (default 10); GROUND TRUTH"),
     "clairvoyant": (lambda p, dt: _lookahead(p, True), "H[@K]: the lookahead on the real future's noise; "
                     "GROUND TRUTH, optimistic bound"),
-    "learned": (lambda p, dt: _learned(p, dt), "path of a saved SB3 model (.zip), or a shipped model's name"),
+    "learned": (lambda p, dt: _learned(p, dt), "path of a saved SB3 model (.zip), or a shipped model's name; "
+                "@T: the per-anchor scheduler's base threshold (m)"),
     "rllib": (lambda p, dt: _rllib(p, dt), "path of an RLlib checkpoint folder"),
 }
 

@@ -7,7 +7,9 @@ For every scenario of the suite (training/scenarios/suite/suite.yml, held-out on
    the scenario's validation seeds, for the env's return (the learned policy's objective): a
    grid, then one bisection round around each family's best;
 2. runs the best tuned heuristic and the learned scheduler (one model for every scenario and
-   team size; the training seed with the best validation score) on >= 100 test seeds;
+   team size; the training seed with the best validation score; a residual over the per-anchor
+   threshold rule, whose base threshold is that family's value tuned in step 1) on >= 100 test
+   seeds;
 3. reports IQM / median tag error with 95 % bootstrap CIs, the catastrophic rate, the time
    spent calibrating, and the paired IQM difference learned - heuristic with its CI.
 
@@ -79,6 +81,23 @@ def tune_scenario(config: dict, seeds: list[int], workers: int, label: str) -> d
             "validation_seeds": [seeds[0], seeds[-1]]}
 
 
+def reusable(row: dict | None, seeds: list[int], a, config: dict) -> dict | None:
+    """``row`` (an earlier run's record of this scenario) when its heuristic side can be reused:
+    same test seeds, and the best heuristic's first ``a.spot_check`` test episodes reproduce
+    its recorded tag errors bit for bit at today's code (else None: recompute)."""
+    from uwb_env.training.evaluate import run_jobs
+
+    if row is None or row.get("test_seeds") != [seeds[0], seeds[-1]] or "tuning" not in row:
+        return None
+    check = seeds[: a.spot_check]
+    episodes = run_jobs([(row["best_heuristic"], s, config) for s in check], a.workers, "spot check", show=False)
+    again = arrays(episodes, row["best_heuristic"])[0]
+    if again.tolist() != row["errors_m"]["heuristic"][: len(check)]:
+        print(f"spot check: {row['best_heuristic']} does not reproduce the earlier run; recomputing", flush=True)
+        return None
+    return row
+
+
 def describe(errors: np.ndarray, calib: np.ndarray, rate: np.ndarray, returns: np.ndarray) -> dict:
     from uwb_env.evaluation.stats import bootstrap_ci, catastrophic_rate
 
@@ -123,6 +142,11 @@ def main() -> None:
     p.add_argument("--max-cycles", type=int, default=None, help="override every scenario's episode length")
     p.add_argument("--resume", action="store_true", help="keep the scenarios an interrupted run finished "
                    "(benchmarks/results/bench_scheduling_detail.json, same model and seed count)")
+    p.add_argument("--reuse-heuristics", action="store_true", help="take each scenario's heuristic tuning, "
+                   "heuristic test episodes and lookahead from the detail file of an earlier run when the best "
+                   "heuristic's first --spot-check test seeds reproduce it exactly (else recompute them): the "
+                   "learned model changed, the dynamics did not")
+    p.add_argument("--spot-check", type=int, default=5, help="test seeds re-run per scenario for --reuse-heuristics")
     a = p.parse_args()
     if a.quick:
         a.test_seeds, a.val_seeds, a.lookahead_seeds, a.max_cycles = 6, 3, 2, 60
@@ -141,15 +165,19 @@ def main() -> None:
                        "val_return": summary["best_val_return"], "wall_s": summary["wall_s"],
                        "steps": summary["steps"]})
     shipped = max(models, key=lambda m: m["val_return"])  # chosen on validation seeds
-    learned = f"learned:{shipped['path']}"
+    learned_model = f"learned:{shipped['path']}"
     suite = load_suite()
     names = a.scenarios or list(suite)
     name_out = "bench_scheduling_quick" if a.quick else "bench_scheduling"
     detail = ROOT / "benchmarks" / "results" / f"{name_out}_detail.json"
-    per_scenario = {}
-    if a.resume and detail.exists():  # scenarios finished by an interrupted run with the same settings
-        done = json.loads(detail.read_text())
-        per_scenario = {n: r for n, r in done.items() if n in names and r.get("learned_spec") == learned
+    per_scenario, earlier = {}, {}
+    if detail.exists() and (a.resume or a.reuse_heuristics):
+        earlier = json.loads(detail.read_text())
+    flat_path = ROOT / "benchmarks" / "results" / f"{name_out}.json"
+    earlier_version = json.loads(flat_path.read_text()).get("code_version", "unknown") if flat_path.exists() else "unknown"
+    if a.resume:  # scenarios finished by an interrupted run with the same settings
+        per_scenario = {n: r for n, r in earlier.items() if n in names
+                        and r.get("learned_spec", "").rpartition("@")[0] == learned_model
                         and r["test_seeds"][1] - r["test_seeds"][0] + 1 == a.test_seeds}
     for name in names:
         if name in per_scenario:
@@ -157,23 +185,44 @@ def main() -> None:
         sc = suite[name]
         config = {**sc["config"], "max_cycles": a.max_cycles or sc["max_cycles"]}
         v0, t0 = sc["seeds"]["validation"][0], sc["seeds"]["test"][0]
-        tuned = tune_scenario(config, list(range(v0, v0 + a.val_seeds)), a.workers, f"tune {name}")
-        best = tuned["best"]
-        specs = [best, learned]
-        if name == "default":
-            specs += [f"learned:{m['path']}" for m in models if m is not shipped]
         seeds = list(range(t0, t0 + a.test_seeds))
+        reused = reusable(earlier.get(name), seeds, a, config) if a.reuse_heuristics else None
+        if reused is not None:
+            tuned, best = reused["tuning"], reused["best_heuristic"]
+        else:
+            tuned = tune_scenario(config, list(range(v0, v0 + a.val_seeds)), a.workers, f"tune {name}")
+            best = tuned["best"]
+        # the learned scheduler is a residual over the per-anchor threshold rule: its base
+        # threshold is that family's tuned value on the scenario's validation seeds
+        base = tuned["best_of_family"]["per_anchor_threshold"].partition(":")[2]
+        learned = f"{learned_model}@{base}"
+        specs = [learned] if reused is not None else [best, learned]
+        if name == "default":
+            specs += [f"learned:{m['path']}@{base}" for m in models if m is not shipped]
         episodes = run_jobs([(s, seed, config) for s in specs for seed in seeds], a.workers, f"test {name}", show=False)
-        h, lr = arrays(episodes, best), arrays(episodes, learned)
+        lr = arrays(episodes, learned)
+        if reused is not None:
+            h_errors, h_desc = np.array(reused["errors_m"]["heuristic"]), reused["heuristic"]
+        else:
+            h = arrays(episodes, best)
+            h_errors, h_desc = h[0], describe(*h)
         row = {"held_out": sc["held_out"], "best_heuristic": best, "learned_spec": learned, "tuning": tuned,
-               "heuristic": describe(*h), "learned": describe(*lr), "comparison": compare(lr[0], h[0]),
+               "heuristic": h_desc, "learned": describe(*lr), "comparison": compare(lr[0], h_errors),
                "test_seeds": [seeds[0], seeds[-1]]}
-        row["errors_m"] = {"heuristic": h[0].tolist(), "learned": lr[0].tolist()}  # by test seed, for pairing
+        if reused is not None:
+            origin = (reused.get("heuristic_reused", {}).get("from_code_version") or reused.get("code_version")
+                      or earlier_version)
+            row["heuristic_reused"] = {"from_code_version": origin,
+                                       "spot_check_seeds": a.spot_check, "spot_check_identical": True}
+        row["code_version"] = code_version()
+        row["errors_m"] = {"heuristic": h_errors.tolist(), "learned": lr[0].tolist()}  # by test seed, for pairing
+        if reused is not None and name == "default" and "lookahead" in reused:
+            row["lookahead"] = reused["lookahead"]  # recomputed against the new learned errors below
         if name == "default":
             row["learned_per_training_seed"] = {}
             for m in models:
-                arr = arrays(episodes, f"learned:{m['path']}")
-                row["learned_per_training_seed"][m["seed"]] = {**describe(*arr), **compare(arr[0], h[0])}
+                arr = arrays(episodes, f"learned:{m['path']}@{base}")
+                row["learned_per_training_seed"][m["seed"]] = {**describe(*arr), **compare(arr[0], h_errors)}
         per_scenario[name] = row
         detail.write_text(json.dumps(per_scenario, indent=1, default=float))  # a kill keeps what is done
         c = row["comparison"]
@@ -183,6 +232,13 @@ def main() -> None:
 
     # The reference from above, last (it costs about as much as everything else together).
     default = per_scenario.get("default")
+    if default is not None and "lookahead" in default:  # reused: the learned side is the new model's
+        la = default["lookahead"]
+        n = la["n_seeds"]
+        learn_n = float(iqm(np.array(default["errors_m"]["learned"])[:n]))
+        la["learned_iqm_m_same_seeds"] = learn_n
+        la["gap_closed_fraction"] = (gap_closed_fraction(la["heuristic_iqm_m_same_seeds"], learn_n, la["iqm_m"])
+                                     if la["headroom_ci"][0] > 0 else float("nan"))
     if default is not None and a.lookahead_seeds and "lookahead" not in default:
         sc = suite["default"]
         config = {**sc["config"], "max_cycles": a.max_cycles or sc["max_cycles"]}
@@ -225,6 +281,11 @@ def main() -> None:
         "team_sizes_run": ", ".join(str(n) for n in sorted({int(suite[n]["config"].get("sim", {}).get("n_anchors", 4))
                                                            for n in names})),
         "wall_s": time.perf_counter() - started,
+        "heuristic_side_reused_scenarios": ", ".join(n for n, r in per_scenario.items() if "heuristic_reused" in r)
+        or "none",
+        "heuristic_side_reused_from": ", ".join(sorted({r["heuristic_reused"]["from_code_version"]
+                                                        for r in per_scenario.values() if "heuristic_reused" in r}))
+        or "none",
     }
     if default:
         c = default["comparison"]

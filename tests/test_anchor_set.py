@@ -10,14 +10,19 @@ from uwb_env.agents.anchor_set import ANCHOR_SET_FIELDS, N_FEATURES, anchor_set_
 from uwb_env.system import OBS_FIELDS
 
 
-def _reference(own: np.ndarray, dt: float) -> np.ndarray:
-    """Row by row, with explicit loops over the other anchors."""
+def _reference(own: np.ndarray, dt: float, threshold: float = 0.3) -> np.ndarray:
+    """Row by row, with explicit loops over the other anchors; the base action counted by hand."""
     n = own.shape[0]
+    stale = own[:, 1] > threshold
+    team = stale.sum() >= 0.5 * n
     rows = []
     for i in range(n):
         others = np.delete(own, i, axis=0)[:, :6]
         rank = np.mean(np.delete(own[:, 1], i) < own[i, 1])
-        rows.append(np.concatenate([own[i], others.mean(0), others.max(0), [rank, n, dt]]))
+        base = np.zeros(3)
+        base[2 if team else int(stale[i])] = 1.0
+        rows.append(np.concatenate([own[i], others.mean(0), others.max(0), [rank, n, dt, threshold,
+                                                                           own[i, 1] / threshold], base]))
     return np.array(rows)
 
 
@@ -25,9 +30,10 @@ def _reference(own: np.ndarray, dt: float) -> np.ndarray:
 def test_features_match_a_loop_over_the_others(rng, n):
     own = rng.uniform(0, 2, (n, len(OBS_FIELDS)))
     own[1:3, 2] = own[0, 2]  # ties in the max
-    got = anchor_set_features(own, 0.2)
-    assert got.shape == (n, N_FEATURES) == (n, len(ANCHOR_SET_FIELDS)) and got.dtype == np.float32
-    np.testing.assert_allclose(got, _reference(own, 0.2), rtol=1e-6)
+    for threshold in (0.3, 1.1, 1.7):  # a majority stale (team round), some, few
+        got = anchor_set_features(own, 0.2, threshold)
+        assert got.shape == (n, N_FEATURES) == (n, len(ANCHOR_SET_FIELDS)) and got.dtype == np.float32
+        np.testing.assert_allclose(got, _reference(own, 0.2, threshold), rtol=1e-6)
 
 
 def test_features_are_permutation_equivariant_and_batch(rng):
@@ -83,7 +89,12 @@ def test_vec_env_slots_rewards_and_episode_ends(tmp_path):
     venv = AnchorSetVecEnv(dist, np.random.default_rng(0), seed_base=499_998, seed_span=500_000)
     obs = venv.reset()
     assert venv.num_envs == 8 and obs.shape == (8, N_FEATURES)
-    assert np.all(obs[:3, -2] == 3) and np.all(obs[3:, -2] == 5)  # team size column
+    col = {f: i for i, f in enumerate(ANCHOR_SET_FIELDS)}
+    assert np.all(obs[:3, col["n_anchors"]] == 3) and np.all(obs[3:, col["n_anchors"]] == 5)
+    # one base threshold per copy and episode, inside the distribution's range
+    thr = obs[:, col["base_threshold_m"]]
+    assert len(set(thr[:3])) == 1 and len(set(thr[3:])) == 1 and np.all((thr >= 0.1) & (thr <= 1.0))
+    assert np.all(obs[:, -3:].sum(1) == 1)  # the base action's one-hot
     ended = 0
     for _ in range(40):
         obs, rew, dones, infos = venv.step(np.zeros(8, dtype=int))
@@ -137,7 +148,73 @@ def test_numpy_actor_takes_the_same_actions_as_sb3():
 
     policy = make_policy("learned:anchor_set")
     assert policy._layers is not None
-    x = np.random.default_rng(0).normal(0, 2, (5000, N_FEATURES)).astype(np.float32)
+    rng = np.random.default_rng(0)
+    x = rng.normal(0, 2, (5000, N_FEATURES)).astype(np.float32)
+    x[:, -3:] = np.eye(3)[rng.integers(0, 3, 5000)]  # the base action's one-hot, as the features give it
     sb3, _ = policy.policy.predict(x, deterministic=True)
-    np.testing.assert_array_equal(_argmax_logits(policy._layers, x), sb3)
+    assert policy.prior_logit > 0  # the shipped model is a residual over the rule
+    np.testing.assert_array_equal(_argmax_logits(policy._layers, x, policy.prior_logit), sb3)
     assert len(np.unique(sb3)) == 3  # the inputs exercise every action
+    assert (sb3 != x[:, -3:].argmax(1)).any()  # and the trained residual departs from its base somewhere
+
+
+@pytest.mark.parametrize("threshold", [0.1, 0.3])
+def test_an_untrained_residual_policy_is_the_per_anchor_threshold_rule(tmp_path, threshold):
+    """The residual starts as its base rule, exactly (argmax), in the numpy actor and in SB3."""
+    pytest.importorskip("stable_baselines3")
+    from stable_baselines3 import PPO
+    from uwb_env.agents.anchor_set import AnchorSetPolicy
+    from uwb_env.agents.per_anchor import PerAnchorThresholdPolicy
+    from uwb_env.agents.prior_policy import PartialVecNormalize, PriorLogitsPolicy
+    from uwb_env.env.policy import rollout
+    from uwb_env.training.vec_env import AnchorSetVecEnv
+
+    import uwb_env
+
+    _, dist = _distribution(tmp_path, team_sizes=(3, 4))
+    venv = PartialVecNormalize(AnchorSetVecEnv(dist, np.random.default_rng(0), 0, 500_000))
+    model = PPO(PriorLogitsPolicy, venv, n_steps=8, batch_size=8, seed=0, device="cpu",
+                policy_kwargs={"prior_logit": 3.0})
+    venv.reset()
+    for _ in range(30):  # statistics far from the identity: the one-hot must still pass raw
+        venv.step(np.zeros(venv.num_envs, dtype=int))
+    learned = AnchorSetPolicy(model.policy, venv.obs_rms, venv.clip_obs, base_threshold_m=threshold)
+    assert learned.prior_logit == 3.0 and learned._layers is not None
+    env = uwb_env.parallel_env(max_cycles=120, action_mode="per_anchor", sim={"n_anchors": 5})
+    a = rollout(env, learned, seed=4)
+    b = rollout(env, PerAnchorThresholdPolicy(threshold), seed=4)
+    np.testing.assert_array_equal(a.round_started, b.round_started)
+    np.testing.assert_array_equal(a.tag_error_m, b.tag_error_m)
+    assert a.round_started.any()  # the rule calibrates in these episodes
+    # SB3's own deterministic prediction agrees with the numpy actor
+    obs, _ = env.reset(seed=4)
+    for _ in range(40):
+        agents, rows = learned.rows(obs)
+        sb3, _ = model.policy.predict(rows, deterministic=True)
+        np.testing.assert_array_equal(sb3, np.argmax(rows[:, -3:], axis=1))
+        obs, *_ = env.step(learned.act(obs, {}))
+    venv.close()
+
+
+def test_team_round_requests_are_votes():
+    from uwb_env.agents.per_anchor import NOTHING, RELOCATE_ME, TEAM_ROUND, team_vote
+
+    lone = np.array([TEAM_ROUND, RELOCATE_ME, NOTHING, NOTHING, NOTHING])
+    np.testing.assert_array_equal(team_vote(lone), [NOTHING, RELOCATE_ME, NOTHING, NOTHING, NOTHING])
+    half = np.array([[TEAM_ROUND, TEAM_ROUND, RELOCATE_ME, NOTHING], [TEAM_ROUND, NOTHING, NOTHING, NOTHING]])
+    np.testing.assert_array_equal(team_vote(half), [half[0], [NOTHING] * 4])  # per team, on a batch
+
+
+def test_the_deployed_policy_casts_team_requests_as_votes():
+    from uwb_env.agents.anchor_set import AnchorSetPolicy
+    from uwb_env.agents.per_anchor import NOTHING, TEAM_ROUND
+
+    policy = AnchorSetPolicy(policy=None)  # no SB3 model: a hand-made actor below
+    w = np.zeros((N_FEATURES, 3))
+    w[ANCHOR_SET_FIELDS.index("predicted_position_std_m"), TEAM_ROUND] = 1.0  # team logit = own std
+    policy._layers = [[w, np.array([0.5, -1.0, 0.0]), False]]  # "nothing" logit 0.5
+    obs = {f"anchor_{i}": np.r_[0.0, 0.0, 1.0, s, np.zeros(len(OBS_FIELDS) - 2)].astype(np.float32)
+           for i, s in enumerate([0.9, 0.1, 0.1, 0.1])}
+    assert set(policy.act(obs, {}).values()) == {NOTHING}  # one vote of four: no team round
+    obs["anchor_1"][3] = 0.8  # two of four: the quorum
+    assert set(policy.act(obs, {}).values()) == {TEAM_ROUND, NOTHING} and policy.act(obs, {})["anchor_0"] == TEAM_ROUND

@@ -8,6 +8,7 @@ pytest.importorskip("stable_baselines3", reason="the 'train' extra is not instal
 from uwb_env.agents.learned import LearnedPolicy  # noqa: E402
 from uwb_env.agents.registry import make_policy  # noqa: E402
 from uwb_env.training.train import Args, latest_checkpoint, load_hyperparams, main  # noqa: E402
+from uwb_env.training.evaluate import DEFAULT_TUNED  # noqa: E402
 from uwb_env.training.vec_env import ParallelEnvVecEnv  # noqa: E402
 
 from uwb_env import parallel_env  # noqa: E402
@@ -111,7 +112,9 @@ def test_shipped_model_runs_through_the_hook():
     from uwb_env.training.evaluate import default_policies
 
     assert shipped_model("ppo_scheduler").is_file()
-    assert "learned:anchor_set" in default_policies()  # the main job's learned entry
+    # the main job's learned entry: the residual scheduler on the tuned per-anchor threshold
+    tuned = json.loads(DEFAULT_TUNED.read_text())["tuned"]["per_anchor_threshold"].partition(":")[2]
+    assert f"learned:anchor_set@{tuned}" in default_policies()
     policy = make_policy("learned:ppo_scheduler")  # the earlier 4-anchor model stays loadable
     # trained on free motion (the old default, now training/scenarios/free_motion.yml)
     free = {"anchor_motion": {"model": "heading"}, "tag_motion": {"model": "heading"}}
@@ -128,6 +131,19 @@ def test_shipped_anchor_set_model_runs_on_every_team_size(n_anchors):
     env = parallel_env(max_cycles=150, action_mode="per_anchor", sim={"n_anchors": n_anchors, "n_tags": 3})
     result = rollout(env, policy, seed=2)
     assert result.steps == 150 and np.isfinite(result.tag_error_m).all()
+
+
+def test_learned_spec_base_threshold():
+    policy = make_policy("learned:anchor_set@0.42")
+    assert policy.base_threshold_m == 0.42
+    assert make_policy("learned:anchor_set").base_threshold_m == 0.3  # the model's default base
+    from uwb_env.agents.registry import PolicySpecError
+
+    for bad, match in (("learned:anchor_set@", "needs a base threshold"), ("learned:anchor_set@-1", "base_threshold_m"),
+                       ("learned:anchor_set@nan", "base_threshold_m"),
+                       ("learned:ppo_scheduler@0.3", "only the per-anchor scheduler")):
+        with pytest.raises(PolicySpecError, match=match):
+            make_policy(bad)
 
 
 def test_learned_policy_refuses_a_team_of_another_size():

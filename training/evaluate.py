@@ -49,6 +49,17 @@ METRICS = ("mean_tag_error_m", "median_tag_error_m", "p95_tag_error_m", "mean_an
 SHIPPED_LEARNED = "anchor_set"
 
 
+def shipped_learned_spec(tuned: Path = DEFAULT_TUNED) -> str:
+    """``learned:anchor_set@T``: the shipped residual scheduler on the per-anchor threshold rule
+    at the threshold tuned for the default scenario (``tuned``'s per_anchor_threshold; the
+    model's default base when the file has none)."""
+    try:
+        spec = json.loads(Path(tuned).read_text())["tuned"]["per_anchor_threshold"]
+    except (OSError, KeyError, ValueError):
+        return f"learned:{SHIPPED_LEARNED}"
+    return f"learned:{SHIPPED_LEARNED}@{spec.partition(':')[2]}"
+
+
 def default_policies() -> list[str]:
     """The baselines, plus the shipped learned scheduler when stable-baselines3 is installed."""
     from uwb_env.agents.registry import shipped_model
@@ -59,7 +70,7 @@ def default_policies() -> list[str]:
     except ImportError:
         return policies
     if shipped_model(SHIPPED_LEARNED).is_file():
-        policies.insert(0, f"learned:{SHIPPED_LEARNED}")
+        policies.insert(0, shipped_learned_spec())
     return policies
 
 

@@ -42,6 +42,10 @@ DEFAULT_HYPERPARAMS = HERE / "hyperparams" / "ppo.yml"
 TRAINING_SEED_SPAN = 500_000  # the suite's training range is [0, 499999]
 VALIDATION_SEED_BASE = 500_000
 VALIDATION_SCENARIOS = ("default", "harsh_radio", "fast_robots", "low_drift", "five_anchors", "eight_anchors")
+# Each validation scenario runs the residual on its own tuned base threshold, as deployments
+# (and the benchmark) do: validated on one threshold for all, a checkpoint is rewarded for
+# repairing a mistuned base, which hurts on a tuned one.
+VALIDATION_BASE_THRESHOLDS = HERE / "tuned" / "suite_per_anchor_threshold.json"
 
 
 @dataclass
@@ -58,7 +62,7 @@ class Args:
     eval_every_steps: int = 250_000
     checkpoint_every_steps: int = 50_000
     """the latest state (model, statistics, scenario stream) for resuming after a kill"""
-    val_episodes_per_scenario: int = 2
+    val_episodes_per_scenario: int = 4
     val_max_cycles: int | None = None
     """shorter validation episodes (tests); None: the scenarios' own"""
     resume: bool = True
@@ -80,6 +84,8 @@ class ScenarioDistribution:
     slip_rate_per_s: tuple[float, float]
     nlos_probability: tuple[float, float]
     dropout_probability: tuple[float, float]
+    base_threshold_m: tuple[float, float]
+    """the residual's base rule threshold, log-uniform (tuned per deployment, so trained on a range)"""
 
     @classmethod
     def load(cls, path: str | Path) -> ScenarioDistribution:
@@ -93,9 +99,16 @@ class ScenarioDistribution:
         if missing:
             raise ValueError(f"distribution={str(path)!r}: missing keys {missing}")
         out = cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in raw.items()})
+        lo, hi = out.base_threshold_m
+        if not 0 < lo <= hi:
+            raise ValueError(f"base_threshold_m={list(out.base_threshold_m)!r}: needs 0 < low <= high")
         if any(int(n) < 3 for n in out.team_sizes):
             raise ValueError(f"team_sizes={list(out.team_sizes)!r}: every team needs at least 3 anchors")
         return out
+
+    def sample_base_threshold(self, rng: np.random.Generator) -> float:
+        lo, hi = self.base_threshold_m
+        return float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
 
     def sample(self, n_anchors: int, rng: np.random.Generator) -> dict:
         """EnvConfig overrides of one training episode (``per_anchor`` actions)."""
@@ -125,6 +138,11 @@ class ScenarioDistribution:
         }
 
 
+def validation_base_thresholds() -> dict[str, float]:
+    """Scenario -> the per-anchor threshold tuned on its validation seeds (the residual's base)."""
+    return {k: float(v) for k, v in json.loads(VALIDATION_BASE_THRESHOLDS.read_text())["base_threshold_m"].items()}
+
+
 def validation_jobs(args: Args) -> list[tuple[str, int, dict]]:
     """(scenario, seed, env config overrides) of the checkpoint choice: validation seeds only."""
     from uwb_env.training.suite import load_suite
@@ -140,10 +158,17 @@ def validation_jobs(args: Args) -> list[tuple[str, int, dict]]:
 
 
 def validation_score(policy, jobs) -> float:
-    """Mean env return of ``policy`` over the validation jobs (higher is better)."""
+    """Mean env return of ``policy`` over the validation jobs (higher is better), each scenario
+    on its tuned base threshold."""
+    from uwb_env.agents.anchor_set import DEFAULT_BASE_THRESHOLD_M
     from uwb_env.training.evaluate import run_policy_episode
 
-    return float(np.mean([run_policy_episode(policy, seed, config)["return"] for _, seed, config in jobs]))
+    bases = validation_base_thresholds()
+    returns = []
+    for name, seed, config in jobs:
+        policy.base_threshold_m = bases.get(name, DEFAULT_BASE_THRESHOLD_M)
+        returns.append(run_policy_episode(policy, seed, config)["return"])
+    return float(np.mean(returns))
 
 
 def _save(model, venv, out: Path, record: dict) -> None:
@@ -157,8 +182,8 @@ def main(args: Args) -> dict:
     import torch
     from stable_baselines3 import PPO
     from stable_baselines3.common.callbacks import BaseCallback
-    from stable_baselines3.common.vec_env import VecNormalize
     from uwb_env.agents.anchor_set import AnchorSetPolicy
+    from uwb_env.agents.prior_policy import PartialVecNormalize, PriorLogitsPolicy
     from uwb_env.training.vec_env import AnchorSetVecEnv
 
     torch.set_num_threads(args.torch_threads)
@@ -166,7 +191,8 @@ def main(args: Args) -> dict:
     dist = ScenarioDistribution.load(args.distribution)
     hp = load_block(args.hyperparams, ENV_ID, args.hp)
     normalize, norm_reward = hp.pop("normalize", True), hp.pop("norm_reward", True)
-    policy_name = hp.pop("policy", "MlpPolicy")
+    policy_name = hp.pop("policy", "PriorLogitsPolicy")
+    policy_class = {"PriorLogitsPolicy": PriorLogitsPolicy}.get(policy_name, policy_name)
     rng = np.random.default_rng([args.seed, 7])  # the scenario draws of this training seed
     seed_base = (args.seed * 100_003) % TRAINING_SEED_SPAN
     venv = base = AnchorSetVecEnv(dist, rng, seed_base, TRAINING_SEED_SPAN)
@@ -178,7 +204,7 @@ def main(args: Args) -> dict:
         # continue the scenario stream where it stopped (not replay it from the start)
         base.rng.bit_generator.state = state["scenario_rng"]
         base.episodes = state["episodes"]
-        venv = VecNormalize.load(str(ckpt / "vecnormalize.pkl"), base)
+        venv = PartialVecNormalize.load(str(ckpt / "vecnormalize.pkl"), base)
         model = PPO.load(ckpt / "model.zip", env=venv, device="cpu")
     else:
         if out.exists() and any(out.iterdir()):
@@ -186,8 +212,8 @@ def main(args: Args) -> dict:
                 raise FileExistsError(f"out={str(out)!r}: not empty and not a training run's folder; refusing to "
                                       "overwrite it")
             shutil.rmtree(out)
-        venv = VecNormalize(base, norm_obs=normalize, norm_reward=norm_reward, gamma=hp.get("gamma", 0.99))
-        model = PPO(policy_name, venv, seed=args.seed, device="cpu", verbose=args.verbose, **hp)
+        venv = PartialVecNormalize(base, norm_obs=normalize, norm_reward=norm_reward, gamma=hp.get("gamma", 0.99))
+        model = PPO(policy_class, venv, seed=args.seed, device="cpu", verbose=args.verbose, **hp)
         state = {"best_score": -np.inf, "best_step": 0, "history": [], "wall_s": 0.0}
     jobs = validation_jobs(args)
     record = {"args": asdict(args), "hyperparams": load_block(args.hyperparams, ENV_ID, args.hp),
@@ -226,6 +252,10 @@ def main(args: Args) -> dict:
             return not (args.max_wall_s and time.perf_counter() - started > args.max_wall_s)
 
     remaining = max(args.total_timesteps - model.num_timesteps, 0)
+    if not resumed:
+        # the untrained policy is the base rule itself: a candidate like any checkpoint, so a
+        # training that never beats its base on validation ships the base, and says so
+        evaluate_now()
     if remaining:
         model.learn(remaining, callback=Every(), reset_num_timesteps=not resumed)
     evaluate_now()

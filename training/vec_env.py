@@ -16,6 +16,8 @@ from typing import Any
 import numpy as np
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv
 
+from uwb_env.agents.per_anchor import team_vote
+
 
 class ParallelEnvVecEnv(VecEnv):
     def __init__(self, env_fns: Sequence[Callable[[], Any]]):
@@ -148,7 +150,8 @@ class AnchorSetVecEnv(VecEnv):
     """SB3 ``VecEnv`` for the team-size-invariant per-anchor scheduler: one slot per anchor of
     each training copy (copy k has ``distribution.team_sizes[k]`` anchors for good), each slot
     observing :func:`uwb_env.agents.anchor_set.anchor_set_features` and choosing a
-    ``per_anchor`` action. Every episode of a copy is a new scenario drawn from ``distribution``
+    ``per_anchor`` action. Every episode of a copy is a new scenario (and base threshold of the
+    residual's rule) drawn from ``distribution``
     (a ``training.train_anchor_set.ScenarioDistribution``) with ``rng``, on the seeds
     ``seed_base, seed_base + 1, ...`` (mod ``seed_span``: the training seed range)."""
 
@@ -166,6 +169,7 @@ class AnchorSetVecEnv(VecEnv):
         super().__init__(int(self.offsets[-1]), obs_space, spaces.Discrete(3))
         self.envs: list = [None] * len(self.sizes)
         self.dts = [0.2] * len(self.sizes)
+        self.base_thresholds = [0.3] * len(self.sizes)  # the residual's base rule, drawn per episode
         self._obs = np.zeros((self.num_envs, N_FEATURES), dtype=np.float32)
         self._actions = None
 
@@ -173,6 +177,7 @@ class AnchorSetVecEnv(VecEnv):
         from uwb_env.env.parallel_env import UWBCalibrationParallelEnv
 
         overrides = self.distribution.sample(self.sizes[k], self.rng)
+        self.base_thresholds[k] = self.distribution.sample_base_threshold(self.rng)
         env = UWBCalibrationParallelEnv(overrides)
         self.envs[k], self.dts[k] = env, env.config.sim.dt_s
         seed = (self.seed_base + self.episodes) % self.seed_span
@@ -183,7 +188,7 @@ class AnchorSetVecEnv(VecEnv):
     def _store(self, k: int, obs: dict) -> None:
         from uwb_env.agents.anchor_set import from_observations
 
-        _, rows = from_observations(obs, self.dts[k])
+        _, rows = from_observations(obs, self.dts[k], self.base_thresholds[k])
         self._obs[self.offsets[k]: self.offsets[k + 1]] = rows
 
     def reset(self):
@@ -201,7 +206,9 @@ class AnchorSetVecEnv(VecEnv):
         for k, env in enumerate(self.envs):
             lo, hi = self.offsets[k], self.offsets[k + 1]
             agents = env.agents
-            actions = {a: int(x) for a, x in zip(agents, self._actions[lo:hi], strict=True)}
+            # team-round requests are votes, as the deployed policy casts them (AnchorSetPolicy.act)
+            voted = team_vote(self._actions[lo:hi])
+            actions = {a: int(x) for a, x in zip(agents, voted, strict=True)}
             obs, rew, terms, truncs, _ = env.step(actions)
             rewards[lo:hi] = rew[agents[0]]  # the team reward, the same for every anchor
             self._store(k, obs)
