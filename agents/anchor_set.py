@@ -56,7 +56,8 @@ def anchor_set_features(own: np.ndarray, dt_s: float, base_threshold_m=DEFAULT_B
     """(..., N, len(OBS_FIELDS)) per-anchor env features (positions already dropped) ->
     (..., N, N_FEATURES) float32. ``base_threshold_m``: the residual's base rule threshold, a
     float or one per team (shape (...)). Needs N >= 2 (a team has at least 3 anchors)."""
-    own = np.asarray(own, dtype=np.float64)
+    given = np.asarray(own)
+    own = given.astype(np.float64)
     n = own.shape[-2]
     if n < 2:
         raise ValueError(f"own: needs at least 2 anchors, got shape {own.shape}")
@@ -74,7 +75,9 @@ def anchor_set_features(own: np.ndarray, dt_s: float, base_threshold_m=DEFAULT_B
     rank = (pred[..., None, :] < pred[..., :, None]).sum(-1) / (n - 1)
     shape = own.shape[:-1]
     thr_rows = np.broadcast_to(thr[..., None], shape)
-    base = np.eye(N_ACTIONS)[threshold_actions(pred, thr)]
+    # the rule on the stds as given (float32 observations), exactly as the heuristic compares them
+    rule_threshold = float(base_threshold_m) if np.ndim(base_threshold_m) == 0 else thr
+    base = np.eye(N_ACTIONS)[threshold_actions(given[..., _PREDICTED], rule_threshold)]
     return np.concatenate(
         [own, others_mean, others_max, rank[..., None], np.full((*shape, 1), float(n)), np.full((*shape, 1), dt_s),
          thr_rows[..., None], (pred / thr_rows)[..., None], base],
@@ -168,7 +171,7 @@ class AnchorSetPolicy:
         if self._layers is not None:
             actions = _argmax_logits(self._layers, rows, self.prior_logit)
         else:
-            actions, _ = self.policy.predict(rows, deterministic=False)
+            actions, _ = self.policy.predict(rows, deterministic=self.deterministic)
         actions = team_vote(actions)  # as in training (training.vec_env.AnchorSetVecEnv)
         return {a: int(x) for a, x in zip(agents, actions, strict=True)}
 

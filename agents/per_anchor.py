@@ -13,11 +13,13 @@ NOTHING, RELOCATE_ME, TEAM_ROUND = 0, 1, 2
 
 
 def threshold_actions(predicted_std_m, threshold_m, team_fraction: float = 0.5) -> np.ndarray:
-    """The per-anchor threshold rule on (..., N) predicted stds (``threshold_m`` broadcast
-    against (...)): -> (..., N) actions. One implementation for the heuristic and for the
-    base of the learned residual scheduler (agents/anchor_set.py)."""
-    pred = np.asarray(predicted_std_m, dtype=np.float64)
-    stale = pred > np.asarray(threshold_m, dtype=np.float64)[..., None]
+    """The per-anchor threshold rule on (..., N) predicted stds (``threshold_m`` a float, or one
+    per team of shape (...)): -> (..., N) actions. One implementation for the heuristic and for
+    the base of the learned residual scheduler (agents/anchor_set.py). A float threshold is
+    compared in the stds' own dtype (float32 observations: NumPy's scalar promotion)."""
+    pred = np.asarray(predicted_std_m)
+    thr = float(threshold_m) if np.ndim(threshold_m) == 0 else np.asarray(threshold_m, dtype=np.float64)[..., None]
+    stale = pred > thr
     team = stale.sum(-1, keepdims=True) >= team_fraction * pred.shape[-1]
     return np.where(team, TEAM_ROUND, np.where(stale, RELOCATE_ME, NOTHING))
 

@@ -83,19 +83,38 @@ def tune_scenario(config: dict, seeds: list[int], workers: int, label: str) -> d
 
 def reusable(row: dict | None, seeds: list[int], a, config: dict) -> dict | None:
     """``row`` (an earlier run's record of this scenario) when its heuristic side can be reused:
-    same test seeds, and the best heuristic's first ``a.spot_check`` test episodes reproduce
-    its recorded tag errors bit for bit at today's code (else None: recompute)."""
+    same test and validation seeds, the best heuristic's first ``a.spot_check`` test episodes
+    reproduce its recorded tag errors bit for bit at today's code, and the per-anchor family's
+    tuned spec (the learned policy's base) reproduces its recorded validation return (else None:
+    recompute). The lookahead is reused without a re-run (same dynamics, checked here)."""
     from uwb_env.training.evaluate import run_jobs
 
     if row is None or row.get("test_seeds") != [seeds[0], seeds[-1]] or "tuning" not in row:
         return None
+    v0, v1 = row["tuning"]["validation_seeds"]
+    if v1 - v0 + 1 != a.val_seeds:
+        return None
     check = seeds[: a.spot_check]
-    episodes = run_jobs([(row["best_heuristic"], s, config) for s in check], a.workers, "spot check", show=False)
+    base = row["tuning"]["best_of_family"]["per_anchor_threshold"]
+    jobs = [(row["best_heuristic"], s, config) for s in check]
+    if base != row["best_heuristic"]:
+        jobs += [(base, s, config) for s in range(v0, v1 + 1)]
+    episodes = run_jobs(jobs, a.workers, "spot check", show=False)
     again = arrays(episodes, row["best_heuristic"])[0]
-    if again.tolist() != row["errors_m"]["heuristic"][: len(check)]:
-        print(f"spot check: {row['best_heuristic']} does not reproduce the earlier run; recomputing", flush=True)
+    ok = again.tolist() == row["errors_m"]["heuristic"][: len(check)]
+    if base != row["best_heuristic"]:
+        ok &= float(np.mean([e["return"] for e in episodes if e["policy"] == base])) == \
+            row["tuning"]["validation_returns"][base]
+    if not ok:
+        print(f"spot check: the earlier run does not reproduce at today's code; recomputing", flush=True)
         return None
     return row
+
+
+def model_digest(path: str) -> str:
+    import hashlib
+
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
 
 
 def describe(errors: np.ndarray, calib: np.ndarray, rate: np.ndarray, returns: np.ndarray) -> dict:
@@ -146,8 +165,11 @@ def main() -> None:
                    "heuristic test episodes and lookahead from the detail file of an earlier run when the best "
                    "heuristic's first --spot-check test seeds reproduce it exactly (else recompute them): the "
                    "learned model changed, the dynamics did not")
-    p.add_argument("--spot-check", type=int, default=5, help="test seeds re-run per scenario for --reuse-heuristics")
+    p.add_argument("--spot-check", type=int, default=5, help="test seeds re-run per scenario for --reuse-heuristics "
+                   "(>= 1); the lookahead options do not apply to a reused lookahead")
     a = p.parse_args()
+    if a.spot_check < 1:
+        p.error(f"--spot-check={a.spot_check}: must be >= 1 (reuse is only ever checked, never assumed)")
     if a.quick:
         a.test_seeds, a.val_seeds, a.lookahead_seeds, a.max_cycles = 6, 3, 2, 60
         a.scenarios = a.scenarios or ["default", "three_anchors", "eight_anchors"]
@@ -176,8 +198,10 @@ def main() -> None:
     flat_path = ROOT / "benchmarks" / "results" / f"{name_out}.json"
     earlier_version = json.loads(flat_path.read_text()).get("code_version", "unknown") if flat_path.exists() else "unknown"
     if a.resume:  # scenarios finished by an interrupted run with the same settings
+        digest = model_digest(shipped["path"])  # the same path may hold a retrained model
         per_scenario = {n: r for n, r in earlier.items() if n in names
                         and r.get("learned_spec", "").rpartition("@")[0] == learned_model
+                        and r.get("learned_model_sha256") == digest
                         and r["test_seeds"][1] - r["test_seeds"][0] + 1 == a.test_seeds}
     for name in names:
         if name in per_scenario:
@@ -215,6 +239,7 @@ def main() -> None:
             row["heuristic_reused"] = {"from_code_version": origin,
                                        "spot_check_seeds": a.spot_check, "spot_check_identical": True}
         row["code_version"] = code_version()
+        row["learned_model_sha256"] = model_digest(shipped["path"])
         row["errors_m"] = {"heuristic": h_errors.tolist(), "learned": lr[0].tolist()}  # by test seed, for pairing
         if reused is not None and name == "default" and "lookahead" in reused:
             row["lookahead"] = reused["lookahead"]  # recomputed against the new learned errors below
@@ -224,7 +249,9 @@ def main() -> None:
                 arr = arrays(episodes, f"learned:{m['path']}@{base}")
                 row["learned_per_training_seed"][m["seed"]] = {**describe(*arr), **compare(arr[0], h_errors)}
         per_scenario[name] = row
-        detail.write_text(json.dumps(per_scenario, indent=1, default=float))  # a kill keeps what is done
+        # a kill keeps what is done, and the earlier rows not redone yet (the reuse cache)
+        pending = {n: r for n, r in earlier.items() if n not in per_scenario} if a.reuse_heuristics else {}
+        detail.write_text(json.dumps({**pending, **per_scenario}, indent=1, default=float))
         c = row["comparison"]
         print(f"{name:16s} best {best:28s} heur {row['heuristic']['iqm_m']:.4f}  learned {row['learned']['iqm_m']:.4f}"
               f"  improvement {100 * c['improvement']:+.1f} % [{100 * c['improvement_ci'][0]:+.1f}, "

@@ -155,7 +155,6 @@ def test_numpy_actor_takes_the_same_actions_as_sb3():
     assert policy.prior_logit > 0  # the shipped model is a residual over the rule
     np.testing.assert_array_equal(_argmax_logits(policy._layers, x, policy.prior_logit), sb3)
     assert len(np.unique(sb3)) == 3  # the inputs exercise every action
-    assert (sb3 != x[:, -3:].argmax(1)).any()  # and the trained residual departs from its base somewhere
 
 
 @pytest.mark.parametrize("threshold", [0.1, 0.3])
@@ -178,6 +177,10 @@ def test_an_untrained_residual_policy_is_the_per_anchor_threshold_rule(tmp_path,
     venv.reset()
     for _ in range(30):  # statistics far from the identity: the one-hot must still pass raw
         venv.step(np.zeros(venv.num_envs, dtype=int))
+    obs, *_ = venv.step(np.zeros(venv.num_envs, dtype=int))
+    onehot = np.eye(3)[obs[:, -3:].argmax(1)]
+    np.testing.assert_array_equal(obs[:, -3:], onehot)  # the venv's normalized output keeps the one-hot raw
+    assert np.abs(obs[:, :-3]).max() > 0 and not np.allclose(venv.obs_rms.mean[-3:], 0)  # others normalized
     learned = AnchorSetPolicy(model.policy, venv.obs_rms, venv.clip_obs, base_threshold_m=threshold)
     assert learned.prior_logit == 3.0 and learned._layers is not None
     env = uwb_env.parallel_env(max_cycles=120, action_mode="per_anchor", sim={"n_anchors": 5})
@@ -190,6 +193,7 @@ def test_an_untrained_residual_policy_is_the_per_anchor_threshold_rule(tmp_path,
     obs, _ = env.reset(seed=4)
     for _ in range(40):
         agents, rows = learned.rows(obs)
+        np.testing.assert_array_equal(rows[:, -3:], np.eye(3)[rows[:, -3:].argmax(1)])  # raw here too
         sb3, _ = model.policy.predict(rows, deterministic=True)
         np.testing.assert_array_equal(sb3, np.argmax(rows[:, -3:], axis=1))
         obs, *_ = env.step(learned.act(obs, {}))
@@ -218,3 +222,22 @@ def test_the_deployed_policy_casts_team_requests_as_votes():
     assert set(policy.act(obs, {}).values()) == {NOTHING}  # one vote of four: no team round
     obs["anchor_1"][3] = 0.8  # two of four: the quorum
     assert set(policy.act(obs, {}).values()) == {TEAM_ROUND, NOTHING} and policy.act(obs, {})["anchor_0"] == TEAM_ROUND
+
+
+def test_training_copies_cast_team_requests_as_votes(tmp_path):
+    from uwb_env.agents.per_anchor import NOTHING, TEAM_ROUND
+    from uwb_env.training.vec_env import AnchorSetVecEnv
+
+    _, dist = _distribution(tmp_path, team_sizes=(3, 5))
+    venv = AnchorSetVecEnv(dist, np.random.default_rng(0), seed_base=0, seed_span=500_000)
+    venv.reset()
+    calibrating = ANCHOR_SET_FIELDS.index("calibrating")
+    lone = np.full(8, NOTHING)
+    lone[3] = TEAM_ROUND  # one anchor of the 5-anchor copy: short of the quorum
+    obs, *_ = venv.step(lone)
+    assert np.all(obs[3:, calibrating] == 0)
+    quorum = np.full(8, NOTHING)
+    quorum[3:6] = TEAM_ROUND  # three of five
+    obs, *_ = venv.step(quorum)
+    assert np.all(obs[3:, calibrating] == 1) and np.all(obs[:3, calibrating] == 0)
+    venv.close()
