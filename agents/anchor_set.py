@@ -76,8 +76,7 @@ def anchor_set_features(own: np.ndarray, dt_s: float, base_threshold_m=DEFAULT_B
     shape = own.shape[:-1]
     thr_rows = np.broadcast_to(thr[..., None], shape)
     # the rule on the stds as given (float32 observations), exactly as the heuristic compares them
-    rule_threshold = float(base_threshold_m) if np.ndim(base_threshold_m) == 0 else thr
-    base = np.eye(N_ACTIONS)[threshold_actions(given[..., _PREDICTED], rule_threshold)]
+    base = np.eye(N_ACTIONS)[threshold_actions(given[..., _PREDICTED], base_threshold_m)]
     return np.concatenate(
         [own, others_mean, others_max, rank[..., None], np.full((*shape, 1), float(n)), np.full((*shape, 1), dt_s),
          thr_rows[..., None], (pred / thr_rows)[..., None], base],

@@ -106,7 +106,7 @@ def reusable(row: dict | None, seeds: list[int], a, config: dict) -> dict | None
         ok &= float(np.mean([e["return"] for e in episodes if e["policy"] == base])) == \
             row["tuning"]["validation_returns"][base]
     if not ok:
-        print(f"spot check: the earlier run does not reproduce at today's code; recomputing", flush=True)
+        print("spot check: the earlier run does not reproduce at today's code; recomputing", flush=True)
         return None
     return row
 
@@ -196,9 +196,10 @@ def main() -> None:
     if detail.exists() and (a.resume or a.reuse_heuristics):
         earlier = json.loads(detail.read_text())
     flat_path = ROOT / "benchmarks" / "results" / f"{name_out}.json"
-    earlier_version = json.loads(flat_path.read_text()).get("code_version", "unknown") if flat_path.exists() else "unknown"
+    earlier_version = (json.loads(flat_path.read_text()).get("code_version", "unknown") if flat_path.exists()
+                       else "unknown")
+    digest = model_digest(shipped["path"])  # the same path may hold a retrained model
     if a.resume:  # scenarios finished by an interrupted run with the same settings
-        digest = model_digest(shipped["path"])  # the same path may hold a retrained model
         per_scenario = {n: r for n, r in earlier.items() if n in names
                         and r.get("learned_spec", "").rpartition("@")[0] == learned_model
                         and r.get("learned_model_sha256") == digest
@@ -239,7 +240,7 @@ def main() -> None:
             row["heuristic_reused"] = {"from_code_version": origin,
                                        "spot_check_seeds": a.spot_check, "spot_check_identical": True}
         row["code_version"] = code_version()
-        row["learned_model_sha256"] = model_digest(shipped["path"])
+        row["learned_model_sha256"] = digest
         row["errors_m"] = {"heuristic": h_errors.tolist(), "learned": lr[0].tolist()}  # by test seed, for pairing
         if reused is not None and name == "default" and "lookahead" in reused:
             row["lookahead"] = reused["lookahead"]  # recomputed against the new learned errors below

@@ -159,7 +159,7 @@ class AnchorSetVecEnv(VecEnv):
 
     def __init__(self, distribution, rng: np.random.Generator, seed_base: int, seed_span: int):
         from gymnasium import spaces
-        from uwb_env.agents.anchor_set import N_FEATURES
+        from uwb_env.agents.anchor_set import DEFAULT_BASE_THRESHOLD_M, N_FEATURES
 
         self.distribution, self.rng = distribution, rng
         self.seed_base, self.seed_span, self.episodes = seed_base, seed_span, 0
@@ -169,7 +169,8 @@ class AnchorSetVecEnv(VecEnv):
         super().__init__(int(self.offsets[-1]), obs_space, spaces.Discrete(3))
         self.envs: list = [None] * len(self.sizes)
         self.dts = [0.2] * len(self.sizes)
-        self.base_thresholds = [0.3] * len(self.sizes)  # the residual's base rule, drawn per episode
+        # the residual's base rule threshold of each copy, drawn per episode
+        self.base_thresholds = [DEFAULT_BASE_THRESHOLD_M] * len(self.sizes)
         self._obs = np.zeros((self.num_envs, N_FEATURES), dtype=np.float32)
         self._actions = None
 
