@@ -75,7 +75,7 @@ def test_batched_first_calibration_finds_the_full_solvers_shape():
     count = np.stack([m.count for m in teams])
     complete, pairs, dist, var = symmetric_arrays(mean, count, std)
     assert complete.all()
-    results = first_calibrations(pairs, dist, var, "huber", 3.0)
+    results = first_calibrations(pairs, dist, var, "huber", 3.0).results()
     handled = 0
     for matrix, res in zip(teams, results, strict=True):
         if res is None:
@@ -119,7 +119,7 @@ def test_batched_first_calibration_poor_fits_equal_the_full_solvers():
     mean = np.stack([m.mean_m for m in teams])
     count = np.stack([m.count for m in teams])
     _, pairs, dist, var = symmetric_arrays(mean, count, std)
-    results = first_calibrations(pairs, dist, var, "huber", 3.0)
+    results = first_calibrations(pairs, dist, var, "huber", 3.0).results()
     poor = 0
     for matrix, res in zip(teams, results, strict=True):
         if res is None:
@@ -162,7 +162,7 @@ def test_batched_later_calibrations_equal_the_full_solver_on_the_envs_rounds():
     statuses = []
     for entry in (e for e in log if "res" in e):
         rows = np.flatnonzero(entry["complete"])
-        for q, res in enumerate(entry["res"]):
+        for q, res in enumerate(entry["res"].results()):
             if res is None:
                 continue
             k = rows[q]

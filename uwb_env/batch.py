@@ -28,7 +28,9 @@ from uwb_env.localization import calibrate_anchors
 from uwb_env.localization._tracking_kernel import residual_statistics
 from uwb_env.localization.alignment import rigid_align_batch
 from uwb_env.localization.batched_calibration import (
-    BatchedCalibration,
+    STATUS_NONE,
+    STATUS_POOR,
+    TeamSolutions,
     first_calibrations,
     later_calibrations,
     symmetric_arrays,
@@ -112,13 +114,14 @@ class BatchedSystem:
         est_now = self.anchors_est
         complete, pairs, dist, var = symmetric_arrays(mean, count, self.range_std_m)
         results: list = [None] * B
+        batched = np.zeros(B, dtype=bool)
         rows = np.flatnonzero(complete)
         solver = cfg.solver
-        for r, res in zip(rows, first_calibrations(pairs, dist[rows], var[rows], solver.loss, solver.f_scale_sigmas),
-                          strict=True):
-            results[r] = res
+        solved = first_calibrations(pairs, dist[rows], var[rows], solver.loss, solver.f_scale_sigmas)
+        solved_rows = solved.status != STATUS_NONE
+        batched[rows[solved_rows]] = True
         for k in range(B):
-            if results[k] is None:  # thin layouts, missing pairs, poor fits: the full solver's starts
+            if not batched[k]:  # thin layouts, missing pairs, poor fits: the full solver's starts
                 try:
                     results[k] = calibrate_anchors(RangeMatrix(mean[k], std[k], count[k]), dim=2, loss=solver.loss,
                                                    f_scale=solver.f_scale_sigmas, range_std_m=self.range_std_m)
@@ -126,16 +129,19 @@ class BatchedSystem:
                     results[k] = None
         # A copy without a usable first calibration keeps its starting estimates in the world
         # frame (calibration_count 0: its features say it was never calibrated).
-        failed = np.array([r is None or r.status == "not_converged" for r in results])
-        positions = np.stack([est_now[k] if failed[k] else r.positions for k, r in enumerate(results)])
+        failed = np.array([not batched[k] and (r is None or r.status == "not_converged")
+                           for k, r in enumerate(results)])
+        positions = est_now.copy()
+        positions[rows[solved_rows]] = solved.positions[solved_rows]
+        for k in np.flatnonzero(~failed & ~batched):
+            positions[k] = results[k].positions
         rot, origin = rigid_align_batch(true_mid, positions)  # estimate = truth @ R.T + t, per copy
         rot[failed], origin[failed] = np.eye(2), 0.0
         self.frame_rot, self.frame_origin = rot, -np.einsum("bji,bj->bi", rot, origin)
         since_mid = np.einsum("bnj,bij->bni", est_now - est_mid, rot)
-        batched = np.array([not failed[k] and isinstance(r, BatchedCalibration) for k, r in enumerate(results)])
         if batched.any():
-            ks = np.flatnonzero(batched)
-            self._apply_many(ks, [results[k] for k in ks], since_mid[ks], _drift_rows(drift_mid, self.N, ks))
+            ks = rows[solved_rows]
+            self._apply_many(ks, solved.subset(solved_rows), since_mid[ks], _drift_rows(drift_mid, self.N, ks))
         for k in np.flatnonzero(~failed & ~batched):
             self._apply(k, results[k], since_mid[k], _drift_rows(drift_mid, self.N, [k]))
         self._end_cohort(cohort)
@@ -224,20 +230,19 @@ class BatchedSystem:
         self._end_cohort(cohort)
         est_mid, drift_mid = cohort.path.midpoint_estimates(), cohort.path.midpoint_drift()
         complete, pairs, dist, var = symmetric_arrays(mean, count, self.range_std_m)
-        results: list = [None] * len(copies)
+        ok = np.zeros(len(copies), dtype=bool)
         rows = np.flatnonzero(complete)
         if len(rows):
             solver = self.config.solver
             prior_std = np.sqrt(np.maximum(self.predicted_anchor_var_m2()[copies[rows]], self.range_std_m**2))
-            for r, res in zip(rows, later_calibrations(pairs, dist[rows], var[rows], est_mid[rows], prior_std,
-                                                       solver.loss, solver.f_scale_sigmas, solver.gauge),
-                              strict=True):
-                results[r] = res
-        ok = np.array([r is not None for r in results], dtype=bool)
-        if ok.any():
-            rows = np.flatnonzero(ok)
-            self._apply_many(copies[rows], [results[r] for r in rows], self.anchors_est[copies[rows]] - est_mid[rows],
-                             _drift_rows(drift_mid, self.N, rows))
+            solved = later_calibrations(pairs, dist[rows], var[rows], est_mid[rows], prior_std, solver.loss,
+                                        solver.f_scale_sigmas, solver.gauge)
+            done = solved.status != STATUS_NONE
+            ok[rows[done]] = True
+            if done.any():
+                rows = rows[done]
+                self._apply_many(copies[rows], solved.subset(done), self.anchors_est[copies[rows]] - est_mid[rows],
+                                 _drift_rows(drift_mid, self.N, rows))
         for row, k in enumerate(copies):
             if ok[row]:
                 continue
@@ -262,21 +267,17 @@ class BatchedSystem:
         self._apply(k, result, self.anchors_est[k] - est_mid, drift_mid)
         return True
 
-    def _apply_many(self, ks: np.ndarray, results: list, since_mid: np.ndarray, drift_mid: dict) -> None:
-        """:meth:`_apply` for many copies' batched results at once."""
+    def _apply_many(self, ks: np.ndarray, solved: TeamSolutions, since_mid: np.ndarray, drift_mid: dict) -> None:
+        """:meth:`_apply` for many copies' batched results at once (``solved``: one team per k)."""
         n = self.N
-        positions = np.stack([r.positions for r in results])
-        full = np.stack([r.covariance for r in results]).reshape(len(ks), n, 2, n, 2).transpose(0, 1, 3, 2, 4)
+        full = solved.covariance.reshape(len(ks), n, 2, n, 2).transpose(0, 1, 3, 2, 4)
         idx = np.arange(n)
-        chi2 = np.array([r.chi2 for r in results])
-        dof = np.array([max(r.dof, 1) for r in results])
-        poor = np.array([r.status == "poor_fit" for r in results])
-        scale = np.where(poor, np.maximum(1.0, chi2 / dof), 1.0)
-        self.anchors_est[ks] = positions + since_mid
+        poor = solved.status == STATUS_POOR
+        scale = np.where(poor, np.maximum(1.0, solved.chi2 / max(solved.dof, 1)), 1.0)
+        self.anchors_est[ks] = solved.positions + since_mid
         self.anchor_cov[ks] = scale[:, None, None, None] * full[:, idx, idx]
         self.calibration_var_m2[ks] = np.trace(self.anchor_cov[ks], axis1=2, axis2=3)
-        residuals = np.stack([r.residuals_m for r in results])
-        self.last_calibration_rms_m[ks] = np.sqrt(np.mean(residuals**2, axis=1))
+        self.last_calibration_rms_m[ks] = np.sqrt(np.mean(solved.residuals_m**2, axis=1))
         self.calibration_count[ks] += 1
         self.time_since_calibration_s[ks] = 0.0
         self.steps_since_calibration[ks] = 0

@@ -113,8 +113,8 @@ def _normal_equations(u, z, sqrt_iv, pi, pj, column, code, c, a_mat, g, scratch)
 
 
 @njit(cache=True)
-def _cholesky_solve(mat, rhs, low, out):
-    """Solve mat @ out = rhs by Cholesky (lower factor in ``low``); False if not positive definite."""
+def _cholesky_factor(mat, low):
+    """Lower Cholesky factor of ``mat`` into ``low``; False if not positive definite."""
     m = mat.shape[0]
     for j in range(m):
         s = mat[j, j]
@@ -129,6 +129,13 @@ def _cholesky_solve(mat, rhs, low, out):
             for k in range(j):
                 s -= low[i, k] * low[j, k]
             low[i, j] = s / d
+    return True
+
+
+@njit(cache=True)
+def _cholesky_substitute(low, rhs, out):
+    """Solve (low low^T) out = rhs by forward and back substitution."""
+    m = low.shape[0]
     for i in range(m):
         s = rhs[i]
         for k in range(i):
@@ -139,6 +146,14 @@ def _cholesky_solve(mat, rhs, low, out):
         for k in range(i + 1, m):
             s -= low[k, i] * out[k]
         out[i] = s / low[i, i]
+
+
+@njit(cache=True)
+def _cholesky_solve(mat, rhs, low, out):
+    """Solve mat @ out = rhs by Cholesky (lower factor in ``low``); False if not positive definite."""
+    if not _cholesky_factor(mat, low):
+        return False
+    _cholesky_substitute(low, rhs, out)
     return True
 
 
@@ -234,101 +249,161 @@ def lm_pairs(x0, pi, pj, column, n_free, dist, sqrt_iv, code, c, max_iterations,
 
 
 @njit(cache=True)
-def gauss_newton_teams(x0, pi, pj, dist, sqrt_iv, column, n_free, code, c, max_iterations, xtol_sigma, ok,
-                       ftol=1e-12):
-    """Undamped Gauss-Newton (IRLS for robust losses) for many teams with the same pairs and
-    gauge (``batched_calibration``): x0 (K, n, dim), dist / sqrt_iv (K, P), ok (K,) teams to
-    solve. A team whose step raises the cost (where the full solver would damp), whose normal
-    equations are singular, or that does not converge within the budget comes back not ok.
-    Returns (x, ok)."""
-    k_teams, n, dim = x0.shape
-    npairs = len(pi)
-    m = n_free + 1
-    x = x0.copy()
-    ok = ok.copy()
-    trial = np.empty((n, dim))
-    z, u, z_new, u_new, a_mat, low, g, step, scratch = _work_buffers(npairs, dim, m)
-    for k in range(k_teams):
-        if not ok[k]:
-            continue
-        xk = x[k]
-        xtol = xtol_sigma / np.max(sqrt_iv[k])
-        _evaluate(xk, pi, pj, dist[k], sqrt_iv[k], z, u)
-        done = False
-        for _ in range(max_iterations):
-            _normal_equations(u, z, sqrt_iv[k], pi, pj, column, code, c, a_mat, g, scratch)
-            if not _cholesky_solve(a_mat, g, low, step):
-                ok[k] = False
-                done = True
-                break
-            norm2 = 0.0
-            for r in range(m):
-                norm2 += step[r] * step[r]
-            for q in range(n):
-                for a in range(dim):
-                    trial[q, a] = xk[q, a] - step[column[q * dim + a]]
-            _evaluate(trial, pi, pj, dist[k], sqrt_iv[k], z_new, u_new)
-            cost_old = _cost(z, code, c)
-            cost_new = _cost(z_new, code, c)
-            # converged as the full solver: a step under the tolerance, or (IRLS, which creeps
-            # linearly) a relative cost decrease under ftol
-            small = math.sqrt(norm2) <= xtol or (cost_new <= cost_old and cost_old - cost_new <= ftol * cost_old)
-            worse = cost_new > cost_old * (1 + 1e-12) + 1e-300
-            if not worse:
-                xk[:, :] = trial
-                z[:] = z_new
-                u[:, :] = u_new
-            elif not small:
-                ok[k] = False  # the full solver would damp: hand the team back
-            if small or worse:
-                done = True
-                break
-        if not done:
-            ok[k] = False
-    return x, ok
+def _gauss_newton_team(xk, pi, pj, dist, sqrt_iv, column, code, c, max_iterations, xtol_sigma, trial, bufs):
+    """Undamped Gauss-Newton (IRLS for robust losses) of one team in place; False where the
+    full solver would do more: a step that raises the cost (it would damp), singular normal
+    equations, or no convergence within the budget."""
+    n, dim = xk.shape
+    z, u, z_new, u_new, a_mat, low, g, step, scratch = bufs
+    m = a_mat.shape[0]
+    xtol = xtol_sigma / np.max(sqrt_iv)
+    _evaluate(xk, pi, pj, dist, sqrt_iv, z, u)
+    for _ in range(max_iterations):
+        _normal_equations(u, z, sqrt_iv, pi, pj, column, code, c, a_mat, g, scratch)
+        if not _cholesky_solve(a_mat, g, low, step):
+            return False
+        norm2 = 0.0
+        for r in range(m):
+            norm2 += step[r] * step[r]
+        for q in range(n):
+            for a in range(dim):
+                trial[q, a] = xk[q, a] - step[column[q * dim + a]]
+        _evaluate(trial, pi, pj, dist, sqrt_iv, z_new, u_new)
+        cost_old = _cost(z, code, c)
+        cost_new = _cost(z_new, code, c)
+        # converged as the full solver: a step under the tolerance, or (IRLS, which creeps
+        # linearly) a relative cost decrease under ftol (1e-12)
+        small = math.sqrt(norm2) <= xtol or (cost_new <= cost_old and cost_old - cost_new <= 1e-12 * cost_old)
+        worse = cost_new > cost_old * (1 + 1e-12) + 1e-300
+        if not worse:
+            xk[:, :] = trial
+            z[:] = z_new
+            u[:, :] = u_new
+        if worse:
+            return small  # a raised cost is only accepted as a stop under the tolerance
+        if small:
+            return True
+    return False
 
 
 @njit(cache=True)
-def team_covariances(x, pi, pj, dist, sqrt_iv, column, n_free, code, c, rows):
-    """(J^T W J)^-1 at each listed team's solution (robust weights included), expanded to all
-    n*dim coordinates with zeros on the gauge-fixed ones: (len(rows), n*dim, n*dim), and
-    whether each information matrix was positive definite (NaN covariance where not)."""
-    k_teams, n, dim = x.shape
+def _team_covariance(xk, pi, pj, dist, sqrt_iv, column, code, c, out, bufs, inv, e, col):
+    """(J^T W J)^-1 at one team's solution (robust weights included) into ``out`` (n*dim,
+    n*dim), zeros on the gauge-fixed coordinates; False (and NaN) where the information matrix
+    is not positive definite."""
+    z, u, _, _, a_mat, low, g, _, scratch = bufs
+    m = a_mat.shape[0]
+    n_free = m - 1
+    nd = out.shape[0]
+    _evaluate(xk, pi, pj, dist, sqrt_iv, z, u)
+    _normal_equations(u, z, sqrt_iv, pi, pj, column, code, c, a_mat, g, scratch)
+    if not _cholesky_factor(a_mat, low):  # factored once, one substitution per column
+        out[:, :] = np.nan
+        return False
+    for q in range(m):
+        e[:] = 0.0
+        e[q] = 1.0
+        _cholesky_substitute(low, e, col)
+        for p in range(m):
+            inv[p, q] = col[p]
+    out[:, :] = 0.0
+    for a in range(nd):
+        ca = column[a]
+        if ca == n_free:
+            continue
+        for b in range(nd):
+            cb = column[b]
+            if cb != n_free:
+                out[a, b] = inv[ca, cb]
+    return True
+
+
+@njit(cache=True)
+def solve_teams_2d(start, ref, pi, pj, dist, sqrt_iv, code, c, max_iterations):
+    """Many 2D teams with the same pairs in one compiled loop (``batched_calibration``).
+
+    Team k is put in the paper frame of ``start[k]`` about anchors (0, ``ref[k]``) (anchor 0
+    at the origin, anchor ref on +x, the others' y summing positive; not ok where
+    ``alignment.paper_frame`` would raise), solved by Gauss-Newton with the linear loss
+    (``max_iterations``, step tolerance 1e-3 sigma), then, for a robust ``code``, by IRLS from
+    there (4x the budget, 1e-4 sigma). start (K, n, 2), ref (K,), dist / sqrt_iv (K, P).
+
+    Returns (x (K, n, 2) in the frame, ok (K,), residuals_m (K, P), chi2 (K,), max |z| (K,),
+    robust cost (K,), covariance (K, 2n, 2n) in the frame with zeros on the fixed
+    coordinates, NaN where the information matrix is singular, good (K,) its positive
+    definiteness); the outputs past x and ok are only meaningful where ok."""
+    k_teams, n, dim = start.shape
     npairs = len(pi)
-    m = n_free + 1
     nd = n * dim
-    cov = np.zeros((len(rows), nd, nd))
-    good = np.ones(len(rows), np.bool_)
-    z = np.empty(npairs)
-    u = np.empty((npairs, dim))
-    a_mat = np.empty((m, m))
-    low = np.zeros((m, m))
-    g = np.empty(m)
+    m = nd - 3 + 1
+    x = np.empty_like(start)
+    ok = np.zeros(k_teams, np.bool_)
+    res = np.full((k_teams, npairs), np.nan)
+    chi2 = np.full(k_teams, np.nan)
+    zmax = np.full(k_teams, np.nan)
+    cost = np.full(k_teams, np.nan)
+    cov = np.full((k_teams, nd, nd), np.nan)
+    good = np.zeros(k_teams, np.bool_)
+    bufs = _work_buffers(npairs, dim, m)
+    z = bufs[0]
+    trial = np.empty((n, dim))
+    column = np.empty(nd, np.int64)
+    inv = np.empty((m, m))
     e = np.zeros(m)
     col = np.empty(m)
-    inv = np.empty((m, m))
-    scratch = np.empty((3, dim))
-    for r in range(len(rows)):
-        k = rows[r]
-        _evaluate(x[k], pi, pj, dist[k], sqrt_iv[k], z, u)
-        _normal_equations(u, z, sqrt_iv[k], pi, pj, column, code, c, a_mat, g, scratch)
-        for q in range(m):
-            e[:] = 0.0
-            e[q] = 1.0
-            if not _cholesky_solve(a_mat, e, low, col):
-                good[r] = False
-                break
-            for p in range(m):
-                inv[p, q] = col[p]
-        if not good[r]:
-            cov[r, :, :] = np.nan
-            continue
+    for k in range(k_teams):
+        b = ref[k]
+        # the free coordinates: all but anchor 0's and anchor b's y (the extra last column)
+        q = 0
         for a in range(nd):
-            ca = column[a]
-            if ca == n_free:
-                continue
-            for b in range(nd):
-                cb = column[b]
-                if cb != n_free:
-                    cov[r, a, b] = inv[ca, cb]
-    return cov, good
+            if a < 2 or a == 2 * b + 1:
+                column[a] = m - 1
+            else:
+                column[a] = q
+                q += 1
+        # paper frame (alignment.paper_frame_2d_batch)
+        scale = 1e-12
+        for i in range(n):
+            for a in range(dim):
+                scale = max(scale, abs(start[k, i, a] - start[k, 0, a]))
+        ex0 = start[k, b, 0] - start[k, 0, 0]
+        ex1 = start[k, b, 1] - start[k, 0, 1]
+        norm = math.sqrt(ex0 * ex0 + ex1 * ex1)
+        if not norm >= 1e-9 * scale:
+            continue
+        ex0 /= norm
+        ex1 /= norm
+        ysum = 0.0
+        yabs = 0.0
+        for i in range(n):
+            y = -(start[k, i, 0] - start[k, 0, 0]) * ex1 + (start[k, i, 1] - start[k, 0, 1]) * ex0
+            ysum += y
+            yabs = max(yabs, abs(y))
+        if not yabs >= 1e-6 * scale:
+            continue
+        sign = -1.0 if ysum < 0 else 1.0
+        xk = x[k]
+        for i in range(n):
+            r0 = start[k, i, 0] - start[k, 0, 0]
+            r1 = start[k, i, 1] - start[k, 0, 1]
+            xk[i, 0] = r0 * ex0 + r1 * ex1
+            xk[i, 1] = sign * (-r0 * ex1 + r1 * ex0)
+        if not _gauss_newton_team(xk, pi, pj, dist[k], sqrt_iv[k], column, 0, 1.0, max_iterations, 1e-3, trial,
+                                  bufs):
+            continue
+        if code != 0 and not _gauss_newton_team(xk, pi, pj, dist[k], sqrt_iv[k], column, code, c,
+                                                4 * max_iterations, 1e-4, trial, bufs):
+            continue
+        ok[k] = True
+        _evaluate(xk, pi, pj, dist[k], sqrt_iv[k], z, bufs[1])
+        total = 0.0
+        top = 0.0
+        for p in range(npairs):
+            res[k, p] = z[p] / sqrt_iv[k, p]
+            total += z[p] * z[p]
+            top = max(top, abs(z[p]))
+        chi2[k] = total
+        zmax[k] = top
+        cost[k] = _cost(z, code, c)
+        good[k] = _team_covariance(xk, pi, pj, dist[k], sqrt_iv[k], column, code, c, cov[k], bufs, inv, e, col)
+    return x, ok, res, chi2, zmax, cost, cov, good

@@ -18,9 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import chdtrc
 
-from uwb_env.localization._lm_kernel import LOSS_CODES, gauss_newton_teams, team_covariances
-from uwb_env.localization.alignment import paper_frame_2d_batch, rigid_align, rigid_align_batch
-from uwb_env.localization.robust import robust_cost
+from uwb_env.localization._lm_kernel import LOSS_CODES, solve_teams_2d
+from uwb_env.localization.alignment import rigid_align, rigid_align_batch
 from uwb_env.measurements import RangeMatrix
 
 
@@ -47,6 +46,55 @@ class BatchedCalibration:
         return float(np.sqrt(np.mean(self.residuals_m**2)))
 
 
+STATUS_NONE, STATUS_OK, STATUS_POOR = 0, 1, 2
+_STATUS_NAMES = {STATUS_OK: "ok", STATUS_POOR: "poor_fit"}
+
+
+@dataclass
+class TeamSolutions:
+    """K teams' solutions as arrays (what the batched env applies without a Python object per
+    team). ``status`` per team: 0 handed back to the full solver (nothing else is meaningful
+    there), 1 ok, 2 poor fit (returned only where the full solver would end with it too)."""
+
+    positions: np.ndarray  # (K, n, 2)
+    covariance: np.ndarray  # (K, 2n, 2n)
+    residuals_m: np.ndarray  # (K, P)
+    chi2: np.ndarray  # (K,)
+    cost: np.ndarray  # (K,) the (robust) least-squares cost at the solution
+    status: np.ndarray  # (K,) int
+    dof: int
+
+    def __len__(self) -> int:
+        return len(self.status)
+
+    def result(self, k: int) -> BatchedCalibration | None:
+        if self.status[k] == STATUS_NONE:
+            return None
+        return BatchedCalibration(self.positions[k], self.covariance[k], self.residuals_m[k], float(self.chi2[k]),
+                                  self.dof, _STATUS_NAMES[int(self.status[k])], cost=float(self.cost[k]))
+
+    def results(self) -> list[BatchedCalibration | None]:
+        return [self.result(k) for k in range(len(self))]
+
+    def hand_back(self, rows) -> None:
+        self.status[rows] = STATUS_NONE
+
+    def subset(self, rows: np.ndarray) -> TeamSolutions:
+        return TeamSolutions(self.positions[rows], self.covariance[rows], self.residuals_m[rows], self.chi2[rows],
+                             self.cost[rows], self.status[rows], self.dof)
+
+    @staticmethod
+    def none(k_teams: int, n: int, npairs: int, dof: int) -> TeamSolutions:
+        return TeamSolutions(np.full((k_teams, n, 2), np.nan), np.full((k_teams, 2 * n, 2 * n), np.nan),
+                             np.full((k_teams, npairs), np.nan), np.full(k_teams, np.nan), np.full(k_teams, np.nan),
+                             np.zeros(k_teams, dtype=np.int8), dof)
+
+    def place(self, rows: np.ndarray, other: TeamSolutions) -> None:
+        """Write ``other`` (len(rows) teams) into the listed rows."""
+        for name in ("positions", "covariance", "residuals_m", "chi2", "cost", "status"):
+            getattr(self, name)[rows] = getattr(other, name)
+
+
 def calibrate_with_priors(matrices: list[RangeMatrix], priors: np.ndarray, range_std_m: float,
                           loss: str = "huber", f_scale: float = 3.0, gauge: str = "prior",
                           max_iterations: int = 50, fit_alpha: float = 1e-3,
@@ -60,8 +108,9 @@ def calibrate_with_priors(matrices: list[RangeMatrix], priors: np.ndarray, range
     full = np.flatnonzero(complete)
     if not len(full):
         return out
-    for r, res in zip(full, _solve_teams(pairs, dist[full], var[full], priors[full], loss, f_scale, gauge,
-                                         max_iterations, fit_alpha, restart_sigmas), strict=True):
+    solved = _solve_teams(pairs, dist[full], var[full], priors[full], loss, f_scale, gauge, max_iterations,
+                          fit_alpha, restart_sigmas)
+    for r, res in zip(full, solved.results(), strict=True):
         out[r] = res
     return out
 
@@ -69,7 +118,7 @@ def calibrate_with_priors(matrices: list[RangeMatrix], priors: np.ndarray, range
 def later_calibrations(pairs: np.ndarray, dist: np.ndarray, var: np.ndarray, prior: np.ndarray,
                        prior_std_m: np.ndarray, loss: str = "huber", f_scale: float = 3.0, gauge: str = "prior",
                        max_iterations: int = 50, fit_alpha: float = 1e-3,
-                       restart_sigmas: float = 8.0) -> list[BatchedCalibration | None]:
+                       restart_sigmas: float = 8.0) -> TeamSolutions:
     """Later calibrations of K complete 2D teams from arrays (``calibrate_with_priors``), plus
     the poor fits the full solver could do no more about. With ``prior_std_m`` (K, N) the full
     solver, on a poor fit, also solves from the ranges alone and from single-anchor reflections
@@ -78,39 +127,31 @@ def later_calibrations(pairs: np.ndarray, dist: np.ndarray, var: np.ndarray, pri
     its own reflections, the full solver ends with it too: it is returned as ``poor_fit``;
     otherwise the team is handed back (gauge ``prior`` only)."""
     args = (loss, f_scale, gauge, max_iterations, fit_alpha, restart_sigmas)
-    results = _solve_teams(pairs, dist, var, prior, *args, accept_poor=True)
+    solved = _solve_teams(pairs, dist, var, prior, *args, accept_poor=True)
     n = prior.shape[1]
-    dof = len(pairs) - (2 * n - 3)
-    poor = np.array([r for r, res in enumerate(results) if res is not None and res.status == "poor_fit"], dtype=int)
+    poor = np.flatnonzero(solved.status == STATUS_POOR)
     if not len(poor):
-        return results
-    if dof >= 3 or gauge != "prior":  # the full solver would reject outliers / align about anchor 0
-        for r in poor:
-            results[r] = None
-        return results
+        return solved
+    if solved.dof >= 3 or gauge != "prior":  # the full solver would reject outliers / align about anchor 0
+        solved.hand_back(poor)
+        return solved
     weight = 2.0 / prior_std_m[poor] ** 2  # dim / std^2, as the full solver's prior term
 
-    def score(cands, rows):
-        out = np.full(len(rows), np.inf)
-        for q, c in enumerate(cands):
-            if c is not None:
-                d2 = ((c.positions - prior[poor][rows[q]]) ** 2).sum(1)
-                out[q] = c.cost + 0.5 * float(d2 @ weight[rows[q]])
-        return out
+    def score(sol: TeamSolutions, rows: np.ndarray) -> np.ndarray:
+        d2 = ((sol.positions - prior[poor][rows]) ** 2).sum(2)
+        return np.where(sol.status != STATUS_NONE, sol.cost + 0.5 * (d2 * weight[rows]).sum(1), np.inf)
 
     idx = np.arange(len(poor))
-    best = score([results[r] for r in poor], idx)
-    base = np.stack([results[r].positions for r in poor])
+    best = score(solved.subset(poor), idx)
+    base = solved.positions[poor]
     # every alternative start of every poor team in one batched solve
     starts = [_mds(pairs, dist[poor])[0]] + [_reflect_anchors(base, k) for k in range(n)]
     reps = len(starts)
     cands = _solve_teams(pairs, np.tile(dist[poor], (reps, 1)), np.tile(var[poor], (reps, 1)),
                          np.concatenate(starts), *args, accept_poor=True)
     beaten = (score(cands, np.tile(idx, reps)).reshape(reps, -1) < best - 1e-9).any(0)
-    for r, bad in zip(poor, beaten, strict=True):
-        if bad:
-            results[r] = None
-    return results
+    solved.hand_back(poor[beaten])
+    return solved
 
 
 def _mds(pairs: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -148,50 +189,45 @@ def symmetric_arrays(mean_m: np.ndarray, count: np.ndarray, range_std_m: float):
 
 def first_calibrations(pairs: np.ndarray, dist: np.ndarray, var: np.ndarray, loss: str = "huber",
                        f_scale: float = 3.0, max_iterations: int = 50, fit_alpha: float = 1e-3,
-                       restart_sigmas: float = 8.0, min_aspect: float = 0.1) -> list[BatchedCalibration | None]:
+                       restart_sigmas: float = 8.0, min_aspect: float = 0.1) -> TeamSolutions:
     """First calibrations (no prior) of K complete 2D teams: classical MDS of each team's
     matrix as the start, then :func:`calibrate_with_priors`' solve and verdict. Positions and
     covariance come back as the full solver's first calibration gives them: in the paper's
     frame (anchor 0 at the origin, anchor 1 on +x, the y axis to the side where the other
     anchors' y sum positive), with that gauge's covariance. A poor fit is returned as such
-    (``status`` "poor_fit") where the full solver would end with it too: too few degrees of
+    (``status`` poor) where the full solver would end with it too: too few degrees of
     freedom to reject a pair and no single-anchor reflection with a lower cost. A team is handed
-    back (``None``) where the full solver's several starts could matter: a thin or degenerate
+    back (status 0) where the full solver's several starts could matter: a thin or degenerate
     layout (second MDS eigenvalue below ``min_aspect`` of the first), a poor fit it would work
     on further, or anything :func:`calibrate_with_priors` hands back."""
     k_teams = dist.shape[0]
     n = int(pairs.max()) + 1
     start, top = _mds(pairs, dist)
     ok = (top[:, 1] > 0) & (top[:, 1] >= min_aspect * top[:, 0])
-    out: list[BatchedCalibration | None] = [None] * k_teams
+    out = TeamSolutions.none(k_teams, n, len(pairs), len(pairs) - (2 * n - 3))
     rows = np.flatnonzero(ok)
     if not len(rows):
         return out
     # the full solver's first-calibration gauge: anchor 0 at the origin, anchor 1 on +x
     args = (loss, f_scale, "paper", max_iterations, fit_alpha, restart_sigmas)
-    results = _solve_group(pairs, dist[rows], var[rows], start[rows], 1, *args, accept_poor=True)
-    dof = len(pairs) - (2 * n - 3)
-    poor = [r for r, res in enumerate(results) if res is not None and res.status == "poor_fit"]
-    if poor and dof < 3:
+    ones = np.ones(len(rows), dtype=np.int64)
+    solved = _solve_group(pairs, dist[rows], var[rows], start[rows], ones, *args, accept_poor=True)
+    poor = np.flatnonzero(solved.status == STATUS_POOR)
+    if len(poor) and solved.dof < 3:
         # What the full solver does with a poor fit it cannot reject a pair from (fewer than two
         # dof would be left): it reflects each anchor across the line through its two nearest
         # others and keeps a lower cost. Where no reflection lowers the cost its answer is this
         # one; where one does, hand the team back.
-        best = np.array([results[r].cost for r in poor])
-        base = np.stack([results[r].positions for r in poor])
+        best = solved.cost[poor]
+        base = solved.positions[poor]
         starts = np.concatenate([_reflect_anchors(base, k) for k in range(n)])  # one batched solve
-        cand = _solve_group(pairs, np.tile(dist[rows[poor]], (n, 1)), np.tile(var[rows[poor]], (n, 1)), starts, 1,
-                            *args, accept_poor=True)
-        costs = np.array([np.inf if c is None else c.cost for c in cand]).reshape(n, -1)
-        lower = (costs < best - 1e-9).any(0)
-        for r, bad in zip(poor, lower, strict=True):
-            if bad:
-                results[r] = None
-    elif poor:  # the full solver would try outlier rejection: hand back
-        for r in poor:
-            results[r] = None
-    for r, res in zip(rows, results, strict=True):
-        out[r] = res
+        cand = _solve_group(pairs, np.tile(dist[rows[poor]], (n, 1)), np.tile(var[rows[poor]], (n, 1)), starts,
+                            np.ones(len(starts), dtype=np.int64), *args, accept_poor=True)
+        costs = np.where(cand.status != STATUS_NONE, cand.cost, np.inf).reshape(n, -1)
+        solved.hand_back(poor[(costs < best - 1e-9).any(0)])
+    elif len(poor):  # the full solver would try outlier rejection: hand back
+        solved.hand_back(poor)
+    out.place(rows, solved)
     return out
 
 
@@ -211,107 +247,55 @@ def _reflect_anchors(x: np.ndarray, k: int) -> np.ndarray:
 
 
 def _solve_teams(pairs, dist, var, prior, loss, f_scale, gauge, max_iterations, fit_alpha, restart_sigmas,
-                 accept_poor=False):
-    """The solve of :func:`calibrate_with_priors` on arrays, grouped by gauge reference."""
-    out: list[BatchedCalibration | None] = [None] * len(prior)
-    # the gauge of the full solver: anchor 0 at the origin, the anchor farthest from it on +x
+                 accept_poor=False) -> TeamSolutions:
+    """The solve of :func:`calibrate_with_priors` on arrays, in the full solver's gauge: anchor 0
+    at the origin, the anchor farthest from it on +x."""
     far = np.argmax(np.linalg.norm(prior - prior[:, :1], axis=2), axis=1)
-    for b in np.unique(far):
-        rows = np.flatnonzero(far == b)
-        results = _solve_group(pairs, dist[rows], var[rows], prior[rows], int(b), loss, f_scale, gauge,
-                               max_iterations, fit_alpha, restart_sigmas, accept_poor)
-        for r, res in zip(rows, results, strict=True):
-            out[r] = res
-    return out
+    return _solve_group(pairs, dist, var, prior, far, loss, f_scale, gauge, max_iterations, fit_alpha,
+                        restart_sigmas, accept_poor)
 
 
-def _solve_group(pairs, dist, var, prior, b, loss, f_scale, gauge, max_iterations, fit_alpha, restart_sigmas,
-                 accept_poor=False):
-    """One batched solve from ``prior`` in the gauge (anchor 0, anchor b); ``accept_poor``:
-    converged fits the verdict rejects come back with status ``poor_fit`` instead of None."""
+def _solve_group(pairs, dist, var, prior, ref, loss, f_scale, gauge, max_iterations, fit_alpha, restart_sigmas,
+                 accept_poor=False) -> TeamSolutions:
+    """One compiled solve of every team from ``prior`` in the gauge (anchor 0, anchor ref[k])
+    (``_lm_kernel.solve_teams_2d``), the fit verdict, and the gauge's placement; ``accept_poor``:
+    converged fits the verdict rejects come back as poor instead of handed back."""
     k_teams, n, dim = prior.shape
-    free = np.ones((n, dim), dtype=bool)
-    free[0] = False
-    free[b, 1] = False
-    free = free.ravel()
-    x, ok = paper_frame_2d_batch(prior, b)
-    i, j = pairs[:, 0], pairs[:, 1]
+    i = np.ascontiguousarray(pairs[:, 0], dtype=np.int64)
+    j = np.ascontiguousarray(pairs[:, 1], dtype=np.int64)
     sqrt_iv = 1.0 / np.sqrt(var)
-    x, ok = _gauss_newton(x, i, j, dist, sqrt_iv, free, "linear", 1.0, max_iterations, 1e-3, ok)
-    if loss != "linear":  # the robust stage from the plain solution, 4x the budget (linear convergence)
-        x, ok = _gauss_newton(x, i, j, dist, sqrt_iv, free, loss, f_scale, 4 * max_iterations, 1e-4, ok)
-    res, _ = _residuals(x, i, j, dist)
-    z = res * sqrt_iv
-    chi2 = (z * z).sum(1)
-    dof = len(pairs) - int(free.sum())
-    p_value = chdtrc(dof, chi2) if dof > 0 else np.ones(k_teams)
-    fit = (p_value >= fit_alpha) & (np.abs(z).max(1) <= restart_sigmas)
-    cost = _cost(z, loss, f_scale)
-    if not accept_poor:
-        ok &= fit
-    results: list[BatchedCalibration | None] = [None] * k_teams
-    rows = np.flatnonzero(ok)
-    if not len(rows):
-        return results
-    column, n_free = _columns(free)
-    cov, good = team_covariances(x, np.ascontiguousarray(i, dtype=np.int64), np.ascontiguousarray(j, dtype=np.int64),
-                                 dist, sqrt_iv, column, n_free, LOSS_CODES[loss], float(f_scale), rows)
-    xs = x[rows]
-    if gauge == "paper":  # the first calibration's sign rule on the gauge solution (an axis flip)
-        flip = np.where(xs[:, :, 1].sum(1) < 0, -1.0, 1.0)
-        positions = xs * np.stack([np.ones_like(flip), flip], 1)[:, None, :]
-        signs = np.tile(np.stack([np.ones_like(flip), flip], 1), (1, n))
-        cov = cov * signs[:, :, None] * signs[:, None, :]
-    elif gauge == "anchor0":  # rotation about anchor 0: one alignment per team
-        positions = np.empty_like(xs)
-        for r in range(len(rows)):
-            rot, trans = rigid_align(xs[r], prior[rows[r]], allow_reflection=True, pivot=0)
-            positions[r] = xs[r] @ rot.T + trans
-            cov[r] = _rotate(cov[r][None], rot[None], n, dim)[0]
-    else:
-        rot, trans = rigid_align_batch(xs, prior[rows])
-        positions = np.einsum("knj,kij->kni", xs, rot) + trans[:, None]
-        cov = _rotate(cov, rot, n, dim)
-    for r, k in enumerate(rows):
-        if good[r]:
-            results[k] = BatchedCalibration(positions[r], cov[r], res[k], float(chi2[k]), dof,
-                                            "ok" if fit[k] else "poor_fit", cost=float(cost[k]))
-    return results
+    x, ok, res, chi2, zmax, cost, cov, good = solve_teams_2d(
+        np.ascontiguousarray(prior, dtype=np.float64), np.ascontiguousarray(ref, dtype=np.int64), i, j,
+        np.ascontiguousarray(dist, dtype=np.float64), np.ascontiguousarray(sqrt_iv, dtype=np.float64),
+        LOSS_CODES[loss], float(f_scale), int(max_iterations))
+    dof = len(pairs) - (n * dim - 3)
+    with np.errstate(invalid="ignore"):
+        p_value = chdtrc(dof, chi2) if dof > 0 else np.ones(k_teams)
+        fit = ok & (p_value >= fit_alpha) & (zmax <= restart_sigmas)
+    status = np.where(fit, STATUS_OK, STATUS_POOR).astype(np.int8)
+    status[~(ok & good & (fit | accept_poor))] = STATUS_NONE
+    rows = np.flatnonzero(status != STATUS_NONE)
+    positions = np.full_like(x, np.nan)
+    if len(rows):
+        xs, cs = x[rows], cov[rows]
+        if gauge == "paper":  # the first calibration's sign rule on the gauge solution (an axis flip)
+            flip = np.where(xs[:, :, 1].sum(1) < 0, -1.0, 1.0)
+            positions[rows] = xs * np.stack([np.ones_like(flip), flip], 1)[:, None, :]
+            signs = np.tile(np.stack([np.ones_like(flip), flip], 1), (1, n))
+            cov[rows] = cs * signs[:, :, None] * signs[:, None, :]
+        elif gauge == "anchor0":  # rotation about anchor 0: one alignment per team
+            for r, k in enumerate(rows):
+                rot, trans = rigid_align(xs[r], prior[k], allow_reflection=True, pivot=0)
+                positions[k] = xs[r] @ rot.T + trans
+                cov[k] = _rotate(cs[r][None], rot[None], n, dim)[0]
+        else:
+            rot, trans = rigid_align_batch(xs, prior[rows])
+            positions[rows] = np.einsum("knj,kij->kni", xs, rot) + trans[:, None]
+            cov[rows] = _rotate(cs, rot, n, dim)
+    return TeamSolutions(positions, cov, res, chi2, cost, status, dof)
 
 
 def _rotate(cov: np.ndarray, rot: np.ndarray, n: int, dim: int) -> np.ndarray:
     """(K, n*dim, n*dim) covariances of points rotated by (K, dim, dim): blockwise R C R^T."""
     c5 = cov.reshape(len(cov), n, dim, n, dim)
     return np.einsum("kai,kmiqj,kbj->kmaqb", rot, c5, rot).reshape(len(cov), n * dim, n * dim)
-
-
-def _residuals(x, i, j, dist):
-    diff = x[:, i] - x[:, j]
-    d = np.sqrt((diff * diff).sum(-1))
-    return d - dist, diff / np.maximum(d, 1e-12)[..., None]
-
-
-def _columns(free: np.ndarray) -> tuple[np.ndarray, int]:
-    """Column of each coordinate in the free-coordinate system; gauge-fixed ones map to the
-    extra last column (``_lm_kernel``'s convention)."""
-    n_free = int(free.sum())
-    column = np.full(free.size, n_free, dtype=np.int64)
-    column[free] = np.arange(n_free)
-    return column, n_free
-
-
-def _gauss_newton(x, i, j, dist, sqrt_iv, free, loss, f_scale, max_iterations, xtol_sigma, ok):
-    """Undamped Gauss-Newton (IRLS for robust losses) over the free coordinates of every team,
-    one compiled loop over the teams (``_lm_kernel.gauss_newton_teams``); a team whose step
-    raises the cost, whose normal equations are singular or that does not converge is marked
-    not ok (the full solver takes it)."""
-    column, n_free = _columns(free)
-    x, ok = gauss_newton_teams(np.ascontiguousarray(x, dtype=np.float64), np.ascontiguousarray(i, dtype=np.int64),
-                               np.ascontiguousarray(j, dtype=np.int64), np.ascontiguousarray(dist, dtype=np.float64),
-                               np.ascontiguousarray(sqrt_iv, dtype=np.float64), column, n_free, LOSS_CODES[loss],
-                               float(f_scale), int(max_iterations), float(xtol_sigma), np.asarray(ok, dtype=bool))
-    return x, ok
-
-
-def _cost(z, loss, f_scale):
-    return robust_cost(z, loss, f_scale, axis=-1)
