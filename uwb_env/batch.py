@@ -314,53 +314,49 @@ class BatchedSystem:
         if self.M == 0 or not copies.any():
             return
         sel = np.flatnonzero(copies)
+        # every copy (no round running anywhere, the usual step): views instead of gathered copies
+        rows = slice(None) if len(sel) == self.B else sel
         # ranges only where tags are being fixed (no ranging while a copy's round runs)
-        d = np.linalg.norm(self.tags_true[sel][:, :, None, :] - self.anchors_true[sel][:, None, :, :], axis=-1)
+        d = np.linalg.norm(self.tags_true[rows][:, :, None, :] - self.anchors_true[rows][:, None, :, :], axis=-1)
         raw = self.range_model.measure(d, self.rng)  # (S, M, N)
-        ranges = np.full((self.B, self.M, self.N), np.nan)
-        ranges[sel] = np.maximum(self.range_model.correct(raw), 0.0)
+        ranges = np.maximum(self.range_model.correct(raw), 0.0)
+        anchors = self.anchors_est[rows]
         solver = self.config.solver
         pred_var = self.predicted_anchor_var_m2()
         cov = None
         if solver.use_anchor_covariance:
             drift = (pred_var - self.calibration_var_m2) / 2
-            cov = self.anchor_cov + drift[..., None, None] * np.eye(2)
+            cov = (self.anchor_cov[rows] + drift[rows][..., None, None] * np.eye(2))
         if cold:  # every tag of every copy from the closed form, refined by the tracking kernel, at once
             pos = np.full((len(sel), self.M, 2), np.nan)
             rms = np.full((len(sel), self.M), np.inf)
-            refit_stuck_tags_2d(self.anchors_est[sel], ranges[sel], pos, rms, np.zeros(len(sel)),
-                                self.range_std_m**2, None if cov is None else cov[sel], solver.loss,
-                                solver.f_scale_sigmas, iterations=20)
+            refit_stuck_tags_2d(anchors, ranges, pos, rms, np.zeros(len(sel)), self.range_std_m**2, cov,
+                                solver.loss, solver.f_scale_sigmas, iterations=20)
         else:
-            pos, rms, _ = self._gauss_newton(sel, ranges[sel], None if cov is None else cov[sel])
-            restart = solver.tag_restart_residual_m + 2.0 * np.sqrt(pred_var[sel].max(axis=1))
+            pos, rms, _ = track_tags_2d(anchors, self.tag_fix[rows], ranges, self.range_std_m**2, cov, solver.loss,
+                                        solver.f_scale_sigmas, solver.tag_iterations)
+            restart = solver.tag_restart_residual_m + 2.0 * np.sqrt(pred_var[rows].max(axis=1))
             # stuck tags of every copy re-solved from the closed form in one batch
-            refit_stuck_tags_2d(self.anchors_est[sel], ranges[sel], pos, rms, restart, self.range_std_m**2,
-                                None if cov is None else cov[sel], solver.loss, solver.f_scale_sigmas)
+            refit_stuck_tags_2d(anchors, ranges, pos, rms, restart, self.range_std_m**2, cov, solver.loss,
+                                solver.f_scale_sigmas)
             # as the single env: a fix the ranges reject in favour of its mirror is replaced
-            var = self.range_std_m**2 + pred_var[sel].mean(axis=1) / 2  # per copy, as the single env's
-            pos, _, _ = check_mirror_2d(self.anchors_est[sel], pos, ranges[sel], var,
-                                        None if cov is None else cov[sel], solver.loss, solver.f_scale_sigmas)
+            var = self.range_std_m**2 + pred_var[rows].mean(axis=1) / 2  # per copy, as the single env's
+            pos, _, _ = check_mirror_2d(anchors, pos, ranges, var, cov, solver.loss, solver.f_scale_sigmas)
         ok = np.isfinite(pos).all(axis=2)
-        old = self.tag_fix[sel]
+        old = self.tag_fix[rows]
         new = np.where(ok[..., None], pos, old)
         had = np.isfinite(old).all(axis=2) & ok
-        self.tag_velocity[sel] = np.where(had[..., None], (new - np.nan_to_num(old)) / self.dt_s,
-                                          self.tag_velocity[sel])
-        self.tag_fix[sel] = new
+        self.tag_velocity[rows] = np.where(had[..., None], (new - np.nan_to_num(old)) / self.dt_s,
+                                           self.tag_velocity[rows])
+        self.tag_fix[rows] = new
         # residual statistics per copy, of the fixes made this step (as the single env's)
-        tag_mean, anchor_mean, any_ok = residual_statistics(self.anchors_est[sel], pos, ranges[sel])
+        tag_mean, anchor_mean, any_ok = residual_statistics(anchors, pos, ranges)
         w = self.config.residual_window_steps
         slot = self._hist[sel] % w
         prev = (slot - 1) % w
         self._tag_res[sel, slot] = np.where(any_ok, tag_mean, self._tag_res[sel, prev])
         self._anchor_res[sel, slot] = np.where(any_ok[:, None], anchor_mean, self._anchor_res[sel, prev])
         self._hist[sel] += 1
-
-    def _gauss_newton(self, sel, r, cov):
-        solver = self.config.solver
-        return track_tags_2d(self.anchors_est[sel], self.tag_fix[sel], r, self.range_std_m ** 2, cov, solver.loss,
-                             solver.f_scale_sigmas, solver.tag_iterations)
 
     # -- observations and metrics --------------------------------------------------------------------
     def features(self) -> np.ndarray:
