@@ -16,9 +16,11 @@ drifts hit all alike:
   with that path's hyperparameters) and ``sb3_ppo_over_dummy8`` (over DummyVecEnv(8) of the
   Gymnasium scheduler env with its hyperparameters, the previous default);
 - ``--before REV``: the batched figure at B = 1024 of another revision, measured in the same
-  run (a temporary worktree, a subprocess of this interpreter) -> ``batched_b1024_over_before``.
+  run (a temporary worktree, a subprocess of this interpreter) -> ``batched_b1024_over_before``;
+- ``--fixed10-before REV``: the ``fixed:10`` / no-calibration ratio of another revision, the same
+  way -> ``batched_fixed10_over_nocal_b1024_before``.
 
-    python benchmarks/bench_vec.py [--quick] [--before af25bf1]
+    python benchmarks/bench_vec.py [--quick] [--before 80cfb30] [--fixed10-before e8d8761]
 
 Writes benchmarks/results/bench_vec.json (``_quick`` with --quick). Needs the ``bench`` extra
 (vmas, mpe2) and ``train`` (SB3) for every figure; a missing one is reported as missing.
@@ -137,7 +139,9 @@ def ppo_rate(env: str, vec_env: str, steps: int) -> float | None:
     return model.num_timesteps / (time.perf_counter() - t0)
 
 
-def before(rev: str, seconds: float) -> float:
+def before(rev: str, seconds: float) -> dict:
+    """Batched B = 1024 copy-steps/s of another revision, without and with ``fixed:10``
+    calibrations (alternating blocks in a subprocess on a temporary worktree)."""
     root = Path(__file__).resolve().parents[1]
     with tempfile.TemporaryDirectory() as tmp:
         tree = Path(tmp) / "tree"
@@ -145,11 +149,11 @@ def before(rev: str, seconds: float) -> float:
                        capture_output=True)
         try:
             code = (f"import sys, json; sys.path.insert(0, {str(Path(__file__).parent)!r}); import bench_vec as b; "
-                    f"print(json.dumps(b.alternating({{'x': b.batched_stepper(1024)}}, {{'x': 1024}}, {seconds}, 3)"
-                    f"['x']))")
+                    f"print(json.dumps(b.alternating({{'nocal': b.batched_stepper(1024), "
+                    f"'fixed10': b.batched_stepper(1024, 10)}}, {{'nocal': 1024, 'fixed10': 1024}}, {seconds}, 3)))")
             out = subprocess.run([sys.executable, "-c", code], env=dict(os.environ, PYTHONPATH=str(tree)),
                                  check=True, capture_output=True, text=True, cwd=tree)
-            return float(out.stdout.strip().splitlines()[-1])
+            return json.loads(out.stdout.strip().splitlines()[-1])
         finally:
             subprocess.run(["git", "-C", str(root), "worktree", "remove", "--force", str(tree)], capture_output=True)
 
@@ -158,6 +162,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--before", default=None, help="a git revision whose batched B=1024 rate is set beside")
+    parser.add_argument("--fixed10-before", default=None,
+                        help="a git revision whose batched fixed:10 / no-calibration ratio at B=1024 is set beside")
     args = parser.parse_args()
     seconds = 3.0 if args.quick else 12.0
     fig: dict = {}
@@ -208,9 +214,14 @@ def main() -> None:
         fig["sb3_ppo_over_dummy8"] = default / dummy
     if args.before:
         fig["before_revision"] = args.before
-        fig["batched_copy_steps_per_s_b1024_before"] = before(args.before, seconds)
+        fig["batched_copy_steps_per_s_b1024_before"] = before(args.before, seconds)["nocal"]
         fig["batched_b1024_over_before"] = fig["batched_copy_steps_per_s_b1024"] / fig[
             "batched_copy_steps_per_s_b1024_before"]
+
+    if args.fixed10_before:
+        rates_before = before(args.fixed10_before, seconds)
+        fig["fixed10_before_revision"] = args.fixed10_before
+        fig["batched_fixed10_over_nocal_b1024_before"] = rates_before["fixed10"] / rates_before["nocal"]
 
     rows = [[k, v] for k, v in fig.items() if isinstance(v, float)]
     print_table("Batched mode throughput (copy-steps/s; ratios side by side in one run)", ["figure", "value"], rows)
