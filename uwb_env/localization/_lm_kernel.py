@@ -158,6 +158,21 @@ def _cholesky_solve(mat, rhs, low, out):
 
 
 @njit(cache=True)
+def _trial_point(x, step, column, trial):
+    """trial = x - step (the step in free coordinates, ``column`` per coordinate; gauge-fixed
+    ones read the extra zero entry); returns the squared step norm."""
+    m = step.shape[0]
+    n, dim = x.shape
+    norm2 = 0.0
+    for r in range(m):
+        norm2 += step[r] * step[r]
+    for k in range(n):
+        for a in range(dim):
+            trial[k, a] = x[k, a] - step[column[k * dim + a]]
+    return norm2
+
+
+@njit(cache=True)
 def _work_buffers(npairs, dim, m):
     """Residuals and unit vectors (current and trial), normal equations, Cholesky factor,
     right-hand side, step and scratch of one solve: allocated once, reused every iteration."""
@@ -198,12 +213,7 @@ def lm_pairs(x0, pi, pj, column, n_free, dist, sqrt_iv, code, c, max_iterations,
             else:
                 ok = _cholesky_solve(a_mat, g, low, step)
             if ok:
-                norm2 = 0.0
-                for r in range(m):
-                    norm2 += step[r] * step[r]
-                for k in range(n):
-                    for a in range(dim):
-                        trial[k, a] = x[k, a] - step[column[k * dim + a]]
+                norm2 = _trial_point(x, step, column, trial)
                 if norm2 <= xtol2:
                     small_step = True
                     break
@@ -253,21 +263,14 @@ def _gauss_newton_team(xk, pi, pj, dist, sqrt_iv, column, code, c, max_iteration
     """Undamped Gauss-Newton (IRLS for robust losses) of one team in place; False where the
     full solver would do more: a step that raises the cost (it would damp), singular normal
     equations, or no convergence within the budget."""
-    n, dim = xk.shape
     z, u, z_new, u_new, a_mat, low, g, step, scratch = bufs
-    m = a_mat.shape[0]
     xtol = xtol_sigma / np.max(sqrt_iv)
     _evaluate(xk, pi, pj, dist, sqrt_iv, z, u)
     for _ in range(max_iterations):
         _normal_equations(u, z, sqrt_iv, pi, pj, column, code, c, a_mat, g, scratch)
         if not _cholesky_solve(a_mat, g, low, step):
             return False
-        norm2 = 0.0
-        for r in range(m):
-            norm2 += step[r] * step[r]
-        for q in range(n):
-            for a in range(dim):
-                trial[q, a] = xk[q, a] - step[column[q * dim + a]]
+        norm2 = _trial_point(xk, step, column, trial)
         _evaluate(trial, pi, pj, dist, sqrt_iv, z_new, u_new)
         cost_old = _cost(z, code, c)
         cost_new = _cost(z_new, code, c)
