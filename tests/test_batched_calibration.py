@@ -41,3 +41,47 @@ def test_batched_results_equal_the_full_solver_and_hard_cases_are_handed_back():
         assert abs(batched[k].chi2 - full[k].chi2) < 1e-6 and batched[k].dof == full[k].dof
     # every poorly fitting round is left to the full solver (which restarts, unfolds, reports)
     assert all(batched[k] is None for k in range(len(full)) if full[k].status != "ok")
+
+
+def test_one_compiled_call_solves_each_team_as_alone_in_its_own_gauge():
+    """Teams with different gauge anchors share one kernel call and its buffers: every team's
+    answer equals the answer of a call with that team alone, and the array results hand back
+    and convert as the list API does."""
+    from uwb_env.localization._lm_kernel import LOSS_CODES, solve_teams_2d
+    from uwb_env.localization.batched_calibration import (
+        STATUS_NONE,
+        TeamSolutions,
+        _solve_teams,
+        symmetric_arrays,
+    )
+
+    rng = np.random.default_rng(11)
+    teams = [rng.uniform(0, 12, (5, 2)) for _ in range(40)]
+    matrices = [_round(x, rng, nlos=0.15) for x in teams]
+    priors = np.stack([x + rng.normal(0, 0.2, x.shape) for x in teams])
+    complete, pairs, dist, var = symmetric_arrays(np.stack([m.mean_m for m in matrices]),
+                                                  np.stack([m.count for m in matrices]), SIGMA)
+    assert complete.all()
+    ref = np.argmax(np.linalg.norm(priors - priors[:, :1], axis=2), axis=1).astype(np.int64)
+    assert len(np.unique(ref)) >= 3  # the teams really use different gauges
+    i, j = pairs[:, 0].astype(np.int64), pairs[:, 1].astype(np.int64)
+    sqrt_iv = 1.0 / np.sqrt(var)
+    together = solve_teams_2d(priors, ref, i, j, dist, sqrt_iv, LOSS_CODES["huber"], 3.0, 50)
+    assert together[1].sum() >= 30
+    for k in range(len(teams)):
+        alone = solve_teams_2d(priors[k:k + 1], ref[k:k + 1], i, j, dist[k:k + 1], sqrt_iv[k:k + 1],
+                               LOSS_CODES["huber"], 3.0, 50)
+        assert alone[1][0] == together[1][k]
+        if together[1][k]:
+            for a, b in zip(together, alone, strict=True):
+                np.testing.assert_array_equal(a[k], b[0])
+    solved = _solve_teams(pairs, dist, var, priors, "huber", 3.0, "prior", 50, 1e-3, 8.0)
+    assert isinstance(solved, TeamSolutions)
+    listed = solved.results()
+    for k, res in enumerate(listed):
+        assert (res is None) == (solved.status[k] == STATUS_NONE)
+    kept = np.flatnonzero(solved.status != STATUS_NONE)
+    sub = solved.subset(kept)
+    np.testing.assert_array_equal(sub.positions, solved.positions[kept])
+    solved.hand_back(kept[:3])
+    assert all(solved.result(k) is None for k in kept[:3])

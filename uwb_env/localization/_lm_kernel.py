@@ -334,7 +334,8 @@ def solve_teams_2d(start, ref, pi, pj, dist, sqrt_iv, code, c, max_iterations):
     Returns (x (K, n, 2) in the frame, ok (K,), residuals_m (K, P), chi2 (K,), max |z| (K,),
     robust cost (K,), covariance (K, 2n, 2n) in the frame with zeros on the fixed
     coordinates, NaN where the information matrix is singular, good (K,) its positive
-    definiteness); the outputs past x and ok are only meaningful where ok."""
+    definiteness). Only rows where ok are meaningful: elsewhere x is uninitialized or a partial
+    iterate."""
     k_teams, n, dim = start.shape
     npairs = len(pi)
     nd = n * dim
@@ -364,7 +365,7 @@ def solve_teams_2d(start, ref, pi, pj, dist, sqrt_iv, code, c, max_iterations):
             else:
                 column[a] = q
                 q += 1
-        # paper frame (alignment.paper_frame_2d_batch)
+        # the paper frame (``alignment.paper_frame`` with refs (0, b); not ok where it would raise)
         scale = 1e-12
         for i in range(n):
             for a in range(dim):

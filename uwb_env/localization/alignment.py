@@ -81,24 +81,6 @@ def rigid_align_batch(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarra
     return rot, mu_t - np.einsum("kij,kj->ki", rot, mu_s)
 
 
-def paper_frame_2d_batch(points: np.ndarray, x_ref: int) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`paper_frame` with refs (0, x_ref) for (K, n, 2) point sets: (frame points
-    (K, n, 2), ok (K,) bool); where ``paper_frame`` would raise (coincident references, all
-    anchors collinear) ``ok`` is False."""
-    rel = points - points[:, :1]
-    scale = np.maximum(np.abs(rel).max(axis=(1, 2)), 1e-12)
-    ex = rel[:, x_ref]
-    norm = np.linalg.norm(ex, axis=1)
-    ok = norm >= 1e-9 * scale
-    ex = ex / np.maximum(norm, 1e-300)[:, None]
-    ey = np.stack([-ex[:, 1], ex[:, 0]], axis=1)
-    y = np.einsum("kni,ki->kn", rel, ey)
-    ok &= np.abs(y).max(1) >= 1e-6 * scale
-    ey = np.where((y.sum(1) < 0)[:, None], -ey, ey)
-    rot = np.stack([ex, ey], axis=1)
-    return np.einsum("kni,kji->knj", rel, rot), ok
-
-
 def paper_frame(points: np.ndarray, refs: tuple[int, ...] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The paper's frame: refs[0] at the origin, refs[1] on +x, the rest in +y.
 

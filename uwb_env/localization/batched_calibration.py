@@ -1,14 +1,16 @@
-"""Later calibrations of many teams at once (the batched env): one Gauss-Newton in numpy.
+"""Later and first calibrations of many teams at once (the batched env): one compiled loop.
 
 :func:`calibrate_with_priors` solves what :func:`~uwb_env.localization.calibrate_anchors` solves
-for a later calibration (``prior`` given, every pair measured), for K teams of N anchors in a
-handful of array calls per iteration: the same gauge (anchor 0 at the origin, the anchor
-farthest from it on +x), the same start (the prior in that gauge), the plain least-squares
-stage then the robust one, the same stopping rule, the same chi-square fit verdict and the same
-rigid alignment onto the prior. A team is handed back (``None``) wherever the full solver would
-do more than this one solve: a missing pair, a fit the verdict rejects or a residual beyond
-``restart_sigmas`` (the full solver then restarts, unfolds or rejects outliers), a step that
-raises the cost, or no convergence. The caller solves those with ``calibrate_anchors``.
+for a later calibration (``prior`` given, every pair measured), for K teams of N anchors in one
+call of ``_lm_kernel.solve_teams_2d``: the same gauge (anchor 0 at the origin, the anchor
+farthest from it on +x, per team), the same start (the prior in that gauge), the plain
+least-squares stage then the robust one, the same stopping rule, the same chi-square fit
+verdict and the same rigid alignment onto the prior. A team is handed back (``None`` in
+:func:`calibrate_with_priors`' list, status 0 in a :class:`TeamSolutions`) wherever the full
+solver would do more than this one solve: a missing pair, a fit the verdict rejects or a
+residual beyond ``restart_sigmas`` (the full solver then restarts, unfolds or rejects
+outliers), a step that raises the cost, or no convergence. The caller solves those with
+``calibrate_anchors``.
 """
 
 from __future__ import annotations
@@ -124,8 +126,8 @@ def later_calibrations(pairs: np.ndarray, dist: np.ndarray, var: np.ndarray, pri
     solver, on a poor fit, also solves from the ranges alone and from single-anchor reflections
     and keeps the lowest cost plus prior chi-square; with fewer than 3 dof it cannot reject a
     pair. Where the prior-started solution keeps the lowest score among the MDS-started one and
-    its own reflections, the full solver ends with it too: it is returned as ``poor_fit``;
-    otherwise the team is handed back (gauge ``prior`` only)."""
+    its own reflections, the full solver ends with it too: it is returned as a poor fit (status
+    2); otherwise the team is handed back (status 0; gauge ``prior`` only)."""
     args = (loss, f_scale, gauge, max_iterations, fit_alpha, restart_sigmas)
     solved = _solve_teams(pairs, dist, var, prior, *args, accept_poor=True)
     n = prior.shape[1]
@@ -211,7 +213,7 @@ def first_calibrations(pairs: np.ndarray, dist: np.ndarray, var: np.ndarray, los
     # the full solver's first-calibration gauge: anchor 0 at the origin, anchor 1 on +x
     args = (loss, f_scale, "paper", max_iterations, fit_alpha, restart_sigmas)
     ones = np.ones(len(rows), dtype=np.int64)
-    solved = _solve_group(pairs, dist[rows], var[rows], start[rows], ones, *args, accept_poor=True)
+    solved = _solve_in_gauge(pairs, dist[rows], var[rows], start[rows], ones, *args, accept_poor=True)
     poor = np.flatnonzero(solved.status == STATUS_POOR)
     if len(poor) and solved.dof < 3:
         # What the full solver does with a poor fit it cannot reject a pair from (fewer than two
@@ -221,7 +223,7 @@ def first_calibrations(pairs: np.ndarray, dist: np.ndarray, var: np.ndarray, los
         best = solved.cost[poor]
         base = solved.positions[poor]
         starts = np.concatenate([_reflect_anchors(base, k) for k in range(n)])  # one batched solve
-        cand = _solve_group(pairs, np.tile(dist[rows[poor]], (n, 1)), np.tile(var[rows[poor]], (n, 1)), starts,
+        cand = _solve_in_gauge(pairs, np.tile(dist[rows[poor]], (n, 1)), np.tile(var[rows[poor]], (n, 1)), starts,
                             np.ones(len(starts), dtype=np.int64), *args, accept_poor=True)
         costs = np.where(cand.status != STATUS_NONE, cand.cost, np.inf).reshape(n, -1)
         solved.hand_back(poor[(costs < best - 1e-9).any(0)])
@@ -251,11 +253,11 @@ def _solve_teams(pairs, dist, var, prior, loss, f_scale, gauge, max_iterations, 
     """The solve of :func:`calibrate_with_priors` on arrays, in the full solver's gauge: anchor 0
     at the origin, the anchor farthest from it on +x."""
     far = np.argmax(np.linalg.norm(prior - prior[:, :1], axis=2), axis=1)
-    return _solve_group(pairs, dist, var, prior, far, loss, f_scale, gauge, max_iterations, fit_alpha,
+    return _solve_in_gauge(pairs, dist, var, prior, far, loss, f_scale, gauge, max_iterations, fit_alpha,
                         restart_sigmas, accept_poor)
 
 
-def _solve_group(pairs, dist, var, prior, ref, loss, f_scale, gauge, max_iterations, fit_alpha, restart_sigmas,
+def _solve_in_gauge(pairs, dist, var, prior, ref, loss, f_scale, gauge, max_iterations, fit_alpha, restart_sigmas,
                  accept_poor=False) -> TeamSolutions:
     """One compiled solve of every team from ``prior`` in the gauge (anchor 0, anchor ref[k])
     (``_lm_kernel.solve_teams_2d``), the fit verdict, and the gauge's placement; ``accept_poor``:
