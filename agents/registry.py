@@ -33,9 +33,18 @@ def _learned(param: str, dt_s: float):
     (the base rule's threshold; default ``anchor_set.DEFAULT_BASE_THRESHOLD_M``)."""
     from uwb_env.agents.learned import LearnedPolicy
 
-    path, at, threshold = param.rpartition("@") if "@" in param else (param, "", "")
-    if at and not threshold:
-        raise ValueError(f"learned:{param}: '@' needs a base threshold in metres, e.g. learned:anchor_set@0.3")
+    path, threshold = param, ""
+    head, at, tail = param.rpartition("@")
+    # '@' followed by more path (a directory named with '@') is part of the model's path
+    if at and "/" not in tail and not tail.endswith(".zip"):
+        path, threshold = head, tail
+        if not threshold:
+            raise ValueError(f"learned:{param}: '@' needs a base threshold in metres, e.g. learned:anchor_set@0.3")
+        try:
+            float(threshold)
+        except ValueError:
+            raise ValueError(f"learned:{param}: the base threshold after '@' must be a number in metres, "
+                             f"got {threshold!r}") from None
     if "/" not in path and not path.endswith(".zip"):  # a shipped model's name
         path = str(shipped_model(path))
     record = Path(path).with_name("run.json")

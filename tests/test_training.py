@@ -141,9 +141,24 @@ def test_learned_spec_base_threshold():
 
     for bad, match in (("learned:anchor_set@", "needs a base threshold"), ("learned:anchor_set@-1", "base_threshold_m"),
                        ("learned:anchor_set@nan", "base_threshold_m"),
+                       ("learned:anchor_set@abc", "must be a number in metres, got 'abc'"),
                        ("learned:ppo_scheduler@0.3", "only the per-anchor scheduler")):
         with pytest.raises(PolicySpecError, match=match):
             make_policy(bad)
+
+
+def test_learned_spec_keeps_an_at_sign_inside_the_model_path(tmp_path):
+    """A model under a directory named with '@' is a path, not a '@<base threshold>' spec."""
+    from uwb_env.agents.registry import PolicySpecError
+
+    shipped = make_policy("learned:ppo_scheduler")
+    model = tmp_path / "run@night" / "model.zip"
+    model.parent.mkdir()
+    shipped.model.save(model)
+    loaded = make_policy(f"learned:{model}")
+    assert type(loaded) is type(shipped)
+    with pytest.raises(PolicySpecError, match="only the per-anchor scheduler"):
+        make_policy(f"learned:{model}@0.3")
 
 
 def test_learned_policy_refuses_a_team_of_another_size():
