@@ -73,11 +73,29 @@ def frame_refs(points: np.ndarray, origin: int = 0, x_ref: int = 1) -> tuple[int
 
 def rigid_align_batch(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """:func:`rigid_align` (unweighted, reflection allowed, no pivot) for (K, n, dim) point sets
-    at once: (R (K, dim, dim), t (K, dim)) with ``target ~= source @ R.T + t``."""
+    at once: (R (K, dim, dim), t (K, dim)) with ``target ~= source @ R.T + t``.
+
+    In 2D the orthogonal Procrustes solution in closed form (what the SVD's U V^T gives): with
+    H the cross-covariance, a rotation by atan2(H10 - H01, H00 + H11) where det H >= 0, else the
+    reflection whose axis angle is atan2(H01 + H10, H00 - H11); a batched SVD of 2 x 2 matrices
+    costs ~5x more (one LAPACK call each)."""
     mu_s, mu_t = source.mean(1), target.mean(1)
-    cov = np.einsum("kni,knj->kij", target - mu_t[:, None], source - mu_s[:, None])
-    u, _, vt = np.linalg.svd(cov)
-    rot = u @ vt
+    s, t = source - mu_s[:, None], target - mu_t[:, None]
+    if source.shape[2] != 2:
+        u, _, vt = np.linalg.svd(np.einsum("kni,knj->kij", t, s))
+        rot = u @ vt
+        return rot, mu_t - np.einsum("kij,kj->ki", rot, mu_s)
+    h00, h01 = (t[..., 0] * s[..., 0]).sum(1), (t[..., 0] * s[..., 1]).sum(1)
+    h10, h11 = (t[..., 1] * s[..., 0]).sum(1), (t[..., 1] * s[..., 1]).sum(1)
+    proper = h00 * h11 - h01 * h10 >= 0.0
+    a = np.where(proper, h00 + h11, h00 - h11)
+    b = np.where(proper, h10 - h01, h01 + h10)
+    norm = np.hypot(a, b)
+    safe = np.where(norm > 0.0, norm, 1.0)
+    cos, sin = np.where(norm > 0.0, a / safe, 1.0), np.where(norm > 0.0, b / safe, 0.0)
+    rot = np.empty((len(source), 2, 2))
+    rot[:, 0, 0], rot[:, 0, 1] = cos, np.where(proper, -sin, sin)
+    rot[:, 1, 0], rot[:, 1, 1] = sin, np.where(proper, cos, -cos)
     return rot, mu_t - np.einsum("kij,kj->ki", rot, mu_s)
 
 

@@ -147,8 +147,8 @@ def later_calibrations(pairs: np.ndarray, dist: np.ndarray, var: np.ndarray, pri
     best = score(solved.subset(poor), idx)
     base = solved.positions[poor]
     # every alternative start of every poor team in one batched solve
-    starts = [_mds(pairs, dist[poor])[0]] + [_reflect_anchors(base, k) for k in range(n)]
-    reps = len(starts)
+    starts = [_mds(pairs, dist[poor])[0], _reflections(base)]
+    reps = n + 1
     cands = _solve_teams(pairs, np.tile(dist[poor], (reps, 1)), np.tile(var[poor], (reps, 1)),
                          np.concatenate(starts), *args, accept_poor=True)
     beaten = (score(cands, np.tile(idx, reps)).reshape(reps, -1) < best - 1e-9).any(0)
@@ -222,7 +222,7 @@ def first_calibrations(pairs: np.ndarray, dist: np.ndarray, var: np.ndarray, los
         # one; where one does, hand the team back.
         best = solved.cost[poor]
         base = solved.positions[poor]
-        starts = np.concatenate([_reflect_anchors(base, k) for k in range(n)])  # one batched solve
+        starts = _reflections(base)  # one batched solve
         cand = _solve_in_gauge(pairs, np.tile(dist[rows[poor]], (n, 1)), np.tile(var[rows[poor]], (n, 1)), starts,
                             np.ones(len(starts), dtype=np.int64), *args, accept_poor=True)
         costs = np.where(cand.status != STATUS_NONE, cand.cost, np.inf).reshape(n, -1)
@@ -233,19 +233,24 @@ def first_calibrations(pairs: np.ndarray, dist: np.ndarray, var: np.ndarray, los
     return out
 
 
-def _reflect_anchors(x: np.ndarray, k: int) -> np.ndarray:
-    """(T, N, 2) with anchor k of every team mirrored across the line through its two nearest
-    others (``calibration._reflect_anchor`` for many teams)."""
-    d = np.linalg.norm(x - x[:, k:k + 1], axis=2)
-    d[:, k] = np.inf
-    near = np.argsort(d, axis=1)[:, :2]
-    t = np.arange(len(x))
-    base, other = x[t, near[:, 0]], x[t, near[:, 1]]
+def _reflections(x: np.ndarray) -> np.ndarray:
+    """(N * T, N, 2): for k = 0..N-1 in turn, every team (T, N, 2) with anchor k mirrored across
+    the line through its two nearest others (``calibration._reflect_anchor`` for many teams and
+    every anchor at once)."""
+    k_teams, n, _ = x.shape
+    d = np.linalg.norm(x[:, :, None] - x[:, None, :], axis=3)  # (T, N, N)
+    d[:, np.arange(n), np.arange(n)] = np.inf
+    near = np.argsort(d, axis=2)[:, :, :2]  # (T, N, 2)
+    t = np.arange(k_teams)[:, None]
+    base, other = x[t, near[..., 0]], x[t, near[..., 1]]  # (T, N, 2) each
     tangent = other - base
-    normal = np.stack([-tangent[:, 1], tangent[:, 0]], 1) / np.maximum(np.linalg.norm(tangent, axis=1), 1e-12)[:, None]
-    out = x.copy()
-    out[:, k] = x[:, k] - 2.0 * ((x[:, k] - base) * normal).sum(1)[:, None] * normal
-    return out
+    normal = np.stack([-tangent[..., 1], tangent[..., 0]], -1) / np.maximum(
+        np.linalg.norm(tangent, axis=-1), 1e-12)[..., None]
+    mirrored = x - 2.0 * ((x - base) * normal).sum(-1)[..., None] * normal  # (T, N, 2): anchor k's mirror
+    out = np.repeat(x[None], n, axis=0)  # (N, T, N, 2)
+    idx = np.arange(n)
+    out[idx, :, idx] = mirrored.transpose(1, 0, 2)
+    return out.reshape(n * k_teams, n, 2)
 
 
 def _solve_teams(pairs, dist, var, prior, loss, f_scale, gauge, max_iterations, fit_alpha, restart_sigmas,
@@ -298,6 +303,11 @@ def _solve_in_gauge(pairs, dist, var, prior, ref, loss, f_scale, gauge, max_iter
 
 
 def _rotate(cov: np.ndarray, rot: np.ndarray, n: int, dim: int) -> np.ndarray:
-    """(K, n*dim, n*dim) covariances of points rotated by (K, dim, dim): blockwise R C R^T."""
-    c5 = cov.reshape(len(cov), n, dim, n, dim)
-    return np.einsum("kai,kmiqj,kbj->kmaqb", rot, c5, rot).reshape(len(cov), n * dim, n * dim)
+    """(K, n*dim, n*dim) covariances of points rotated by (K, dim, dim): blockwise R C R^T, as
+    B C B^T with B the block-diagonal of R (two batched matmuls)."""
+    k_teams = len(cov)
+    blocks = np.zeros((k_teams, n, dim, n, dim))
+    idx = np.arange(n)
+    blocks[:, idx, :, idx, :] = rot[None]
+    blocks = blocks.reshape(k_teams, n * dim, n * dim)
+    return blocks @ cov @ blocks.transpose(0, 2, 1)
