@@ -91,14 +91,23 @@ def test_batched_first_calibration_finds_the_full_solvers_shape():
 
 
 def test_batched_rigid_align_equals_rigid_align():
+    """The 2D closed form (rotation or reflection by the sign of det H) equals the SVD solution:
+    reflections, rotations by any angle, and point sets that are not congruent at all."""
     rng = np.random.default_rng(2)
-    src = rng.normal(size=(50, 5, 2))
-    dst = src @ np.array([[0.0, 1.0], [1.0, 0.0]]) + rng.normal(scale=0.01, size=src.shape)  # a reflection
+    src = rng.normal(size=(150, 5, 2))
+    angle = rng.uniform(-np.pi, np.pi, 50)
+    turn = np.stack([np.stack([np.cos(angle), -np.sin(angle)], 1), np.stack([np.sin(angle), np.cos(angle)], 1)], 1)
+    dst = np.concatenate([src[:50] @ np.array([[0.0, 1.0], [1.0, 0.0]]),  # a reflection
+                          np.einsum("knj,kij->kni", src[50:100], turn) + rng.normal(size=(50, 1, 2)),  # rotations
+                          rng.normal(size=(50, 5, 2))])  # unrelated shapes
+    dst[:100] += rng.normal(scale=0.01, size=(100, 5, 2))
     rot, trans = rigid_align_batch(src, dst)
-    for b in range(50):
+    for b in range(150):
         r, t = rigid_align(src[b], dst[b])
         np.testing.assert_allclose(rot[b], r, atol=1e-10)
         np.testing.assert_allclose(trans[b], t, atol=1e-10)
+    np.testing.assert_allclose(np.linalg.det(rot[:50]), -1.0)
+    np.testing.assert_allclose(np.linalg.det(rot[50:100]), 1.0)
 
 
 def test_batched_first_calibration_poor_fits_equal_the_full_solvers():
