@@ -75,10 +75,13 @@ def rigid_align_batch(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarra
     """:func:`rigid_align` (unweighted, reflection allowed, no pivot) for (K, n, dim) point sets
     at once: (R (K, dim, dim), t (K, dim)) with ``target ~= source @ R.T + t``.
 
-    In 2D the orthogonal Procrustes solution in closed form (what the SVD's U V^T gives): with
-    H the cross-covariance, a rotation by atan2(H10 - H01, H00 + H11) where det H >= 0, else the
-    reflection whose axis angle is atan2(H01 + H10, H00 - H11); a batched SVD of 2 x 2 matrices
-    costs ~5x more (one LAPACK call each)."""
+    In 2D the orthogonal Procrustes solution in closed form: with H the cross-covariance, the
+    rotation by atan2(H10 - H01, H00 + H11) where det H >= 0, else the reflection
+    [[cos f, sin f], [sin f, -cos f]] with f = atan2(H01 + H10, H00 - H11) (its mirror line at
+    f / 2). For a non-singular H that is the SVD's U V^T; for a singular one (collinear or
+    coincident points) a rotation and a reflection fit equally well and this picks the rotation.
+    A batched SVD of 2 x 2 matrices costs ~5x more (one LAPACK call each). Non-finite points give
+    a NaN rotation."""
     mu_s, mu_t = source.mean(1), target.mean(1)
     s, t = source - mu_s[:, None], target - mu_t[:, None]
     if source.shape[2] != 2:
@@ -96,6 +99,7 @@ def rigid_align_batch(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarra
     rot = np.empty((len(source), 2, 2))
     rot[:, 0, 0], rot[:, 0, 1] = cos, np.where(proper, -sin, sin)
     rot[:, 1, 0], rot[:, 1, 1] = sin, np.where(proper, cos, -cos)
+    rot[~np.isfinite(h00 + h01 + h10 + h11)] = np.nan
     return rot, mu_t - np.einsum("kij,kj->ki", rot, mu_s)
 
 

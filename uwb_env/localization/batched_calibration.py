@@ -130,7 +130,6 @@ def later_calibrations(pairs: np.ndarray, dist: np.ndarray, var: np.ndarray, pri
     2); otherwise the team is handed back (status 0; gauge ``prior`` only)."""
     args = (loss, f_scale, gauge, max_iterations, fit_alpha, restart_sigmas)
     solved = _solve_teams(pairs, dist, var, prior, *args, accept_poor=True)
-    n = prior.shape[1]
     poor = np.flatnonzero(solved.status == STATUS_POOR)
     if not len(poor):
         return solved
@@ -147,10 +146,10 @@ def later_calibrations(pairs: np.ndarray, dist: np.ndarray, var: np.ndarray, pri
     best = score(solved.subset(poor), idx)
     base = solved.positions[poor]
     # every alternative start of every poor team in one batched solve
-    starts = [_mds(pairs, dist[poor])[0], _reflections(base)]
-    reps = n + 1
-    cands = _solve_teams(pairs, np.tile(dist[poor], (reps, 1)), np.tile(var[poor], (reps, 1)),
-                         np.concatenate(starts), *args, accept_poor=True)
+    starts = np.concatenate([_mds(pairs, dist[poor])[0], _reflections(base)])
+    reps = len(starts) // len(poor)
+    cands = _solve_teams(pairs, np.tile(dist[poor], (reps, 1)), np.tile(var[poor], (reps, 1)), starts, *args,
+                         accept_poor=True)
     beaten = (score(cands, np.tile(idx, reps)).reshape(reps, -1) < best - 1e-9).any(0)
     solved.hand_back(poor[beaten])
     return solved
@@ -236,7 +235,8 @@ def first_calibrations(pairs: np.ndarray, dist: np.ndarray, var: np.ndarray, los
 def _reflections(x: np.ndarray) -> np.ndarray:
     """(N * T, N, 2): for k = 0..N-1 in turn, every team (T, N, 2) with anchor k mirrored across
     the line through its two nearest others (``calibration._reflect_anchor`` for many teams and
-    every anchor at once)."""
+    every anchor at once; unlike it, also where that line is undefined or N <= 3: such a start
+    only costs a solve, and a worse candidate never replaces the answer)."""
     k_teams, n, _ = x.shape
     d = np.linalg.norm(x[:, :, None] - x[:, None, :], axis=3)  # (T, N, N)
     d[:, np.arange(n), np.arange(n)] = np.inf
