@@ -139,18 +139,20 @@ def ppo_rate(env: str, vec_env: str, steps: int) -> float | None:
     return model.num_timesteps / (time.perf_counter() - t0)
 
 
-def before(rev: str, seconds: float) -> dict:
-    """Batched B = 1024 copy-steps/s of another revision, without and with ``fixed:10``
-    calibrations (alternating blocks in a subprocess on a temporary worktree)."""
+def before(rev: str, seconds: float, fixed10: bool = False) -> dict:
+    """Batched B = 1024 copy-steps/s of another revision without calibrations and, with
+    ``fixed10``, with a calibration every 10 steps (alternating blocks in a subprocess on a
+    temporary worktree)."""
     root = Path(__file__).resolve().parents[1]
     with tempfile.TemporaryDirectory() as tmp:
         tree = Path(tmp) / "tree"
         subprocess.run(["git", "-C", str(root), "worktree", "add", "--detach", str(tree), rev], check=True,
                        capture_output=True)
         try:
+            steppers = "{'nocal': b.batched_stepper(1024)"
+            steppers += ", 'fixed10': b.batched_stepper(1024, 10)}" if fixed10 else "}"
             code = (f"import sys, json; sys.path.insert(0, {str(Path(__file__).parent)!r}); import bench_vec as b; "
-                    f"print(json.dumps(b.alternating({{'nocal': b.batched_stepper(1024), "
-                    f"'fixed10': b.batched_stepper(1024, 10)}}, {{'nocal': 1024, 'fixed10': 1024}}, {seconds}, 3)))")
+                    f"print(json.dumps(b.alternating({steppers}, {{'nocal': 1024, 'fixed10': 1024}}, {seconds}, 3)))")
             out = subprocess.run([sys.executable, "-c", code], env=dict(os.environ, PYTHONPATH=str(tree)),
                                  check=True, capture_output=True, text=True, cwd=tree)
             return json.loads(out.stdout.strip().splitlines()[-1])
@@ -219,7 +221,7 @@ def main() -> None:
             "batched_copy_steps_per_s_b1024_before"]
 
     if args.fixed10_before:
-        rates_before = before(args.fixed10_before, seconds)
+        rates_before = before(args.fixed10_before, seconds, fixed10=True)
         fig["fixed10_before_revision"] = args.fixed10_before
         fig["batched_fixed10_over_nocal_b1024_before"] = rates_before["fixed10"] / rates_before["nocal"]
 

@@ -322,11 +322,11 @@ class BatchedSystem:
         ranges = np.maximum(self.range_model.correct(raw), 0.0)
         anchors = self.anchors_est[rows]
         solver = self.config.solver
-        pred_var = self.predicted_anchor_var_m2()
+        pred_var = self.predicted_anchor_var_m2()[rows]
         cov = None
         if solver.use_anchor_covariance:
-            drift = (pred_var - self.calibration_var_m2) / 2
-            cov = (self.anchor_cov[rows] + drift[rows][..., None, None] * np.eye(2))
+            drift = (pred_var - self.calibration_var_m2[rows]) / 2
+            cov = self.anchor_cov[rows] + drift[..., None, None] * np.eye(2)
         if cold:  # every tag of every copy from the closed form, refined by the tracking kernel, at once
             pos = np.full((len(sel), self.M, 2), np.nan)
             rms = np.full((len(sel), self.M), np.inf)
@@ -335,12 +335,12 @@ class BatchedSystem:
         else:
             pos, rms, _ = track_tags_2d(anchors, self.tag_fix[rows], ranges, self.range_std_m**2, cov, solver.loss,
                                         solver.f_scale_sigmas, solver.tag_iterations)
-            restart = solver.tag_restart_residual_m + 2.0 * np.sqrt(pred_var[rows].max(axis=1))
+            restart = solver.tag_restart_residual_m + 2.0 * np.sqrt(pred_var.max(axis=1))
             # stuck tags of every copy re-solved from the closed form in one batch
             refit_stuck_tags_2d(anchors, ranges, pos, rms, restart, self.range_std_m**2, cov, solver.loss,
                                 solver.f_scale_sigmas)
             # as the single env: a fix the ranges reject in favour of its mirror is replaced
-            var = self.range_std_m**2 + pred_var[rows].mean(axis=1) / 2  # per copy, as the single env's
+            var = self.range_std_m**2 + pred_var.mean(axis=1) / 2  # per copy, as the single env's
             pos, _, _ = check_mirror_2d(anchors, pos, ranges, var, cov, solver.loss, solver.f_scale_sigmas)
         ok = np.isfinite(pos).all(axis=2)
         old = self.tag_fix[rows]

@@ -85,17 +85,6 @@ class TeamSolutions:
         return TeamSolutions(self.positions[rows], self.covariance[rows], self.residuals_m[rows], self.chi2[rows],
                              self.cost[rows], self.status[rows], self.dof)
 
-    @staticmethod
-    def none(k_teams: int, n: int, npairs: int, dof: int) -> TeamSolutions:
-        return TeamSolutions(np.full((k_teams, n, 2), np.nan), np.full((k_teams, 2 * n, 2 * n), np.nan),
-                             np.full((k_teams, npairs), np.nan), np.full(k_teams, np.nan), np.full(k_teams, np.nan),
-                             np.zeros(k_teams, dtype=np.int8), dof)
-
-    def place(self, rows: np.ndarray, other: TeamSolutions) -> None:
-        """Write ``other`` (len(rows) teams) into the listed rows."""
-        for name in ("positions", "covariance", "residuals_m", "chi2", "cost", "status"):
-            getattr(self, name)[rows] = getattr(other, name)
-
 
 def calibrate_with_priors(matrices: list[RangeMatrix], priors: np.ndarray, range_std_m: float,
                           loss: str = "huber", f_scale: float = 3.0, gauge: str = "prior",
@@ -201,18 +190,13 @@ def first_calibrations(pairs: np.ndarray, dist: np.ndarray, var: np.ndarray, los
     back (status 0) where the full solver's several starts could matter: a thin or degenerate
     layout (second MDS eigenvalue below ``min_aspect`` of the first), a poor fit it would work
     on further, or anything :func:`calibrate_with_priors` hands back."""
-    k_teams = dist.shape[0]
     n = int(pairs.max()) + 1
     start, top = _mds(pairs, dist)
-    ok = (top[:, 1] > 0) & (top[:, 1] >= min_aspect * top[:, 0])
-    out = TeamSolutions.none(k_teams, n, len(pairs), len(pairs) - (2 * n - 3))
-    rows = np.flatnonzero(ok)
-    if not len(rows):
-        return out
+    # thin or degenerate layouts get no start (the kernel hands a NaN start back)
+    start[~((top[:, 1] > 0) & (top[:, 1] >= min_aspect * top[:, 0]))] = np.nan
     # the full solver's first-calibration gauge: anchor 0 at the origin, anchor 1 on +x
     args = (loss, f_scale, "paper", max_iterations, fit_alpha, restart_sigmas)
-    ones = np.ones(len(rows), dtype=np.int64)
-    solved = _solve_in_gauge(pairs, dist[rows], var[rows], start[rows], ones, *args, accept_poor=True)
+    solved = _solve_in_gauge(pairs, dist, var, start, np.ones(len(start), dtype=np.int64), *args, accept_poor=True)
     poor = np.flatnonzero(solved.status == STATUS_POOR)
     if len(poor) and solved.dof < 3:
         # What the full solver does with a poor fit it cannot reject a pair from (fewer than two
@@ -220,16 +204,14 @@ def first_calibrations(pairs: np.ndarray, dist: np.ndarray, var: np.ndarray, los
         # others and keeps a lower cost. Where no reflection lowers the cost its answer is this
         # one; where one does, hand the team back.
         best = solved.cost[poor]
-        base = solved.positions[poor]
-        starts = _reflections(base)  # one batched solve
-        cand = _solve_in_gauge(pairs, np.tile(dist[rows[poor]], (n, 1)), np.tile(var[rows[poor]], (n, 1)), starts,
-                            np.ones(len(starts), dtype=np.int64), *args, accept_poor=True)
+        starts = _reflections(solved.positions[poor])  # one batched solve
+        cand = _solve_in_gauge(pairs, np.tile(dist[poor], (n, 1)), np.tile(var[poor], (n, 1)), starts,
+                               np.ones(len(starts), dtype=np.int64), *args, accept_poor=True)
         costs = np.where(cand.status != STATUS_NONE, cand.cost, np.inf).reshape(n, -1)
         solved.hand_back(poor[(costs < best - 1e-9).any(0)])
     elif len(poor):  # the full solver would try outlier rejection: hand back
         solved.hand_back(poor)
-    out.place(rows, solved)
-    return out
+    return solved
 
 
 def _reflections(x: np.ndarray) -> np.ndarray:
