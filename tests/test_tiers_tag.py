@@ -101,7 +101,7 @@ def test_damaged_lines_are_rejected_never_misread_and_the_decoder_never_raises()
 
 
 def test_partial_sum_of_a_timed_out_anchor_is_caught_by_the_driver():
-    scene = Scene(EnvConfig.from_dict({"sim": STATIC}).sim, seed=4)
+    scene = Scene(EnvConfig.from_dict({"sim": STATIC}).sim, seed=4, speedup=0.0)  # frozen: draws independent of wall time
     emu = Emulator(scene)
     url = emu.add("tag", TiersTagDevice(scene, 0, silent_after={2: 2}))  # anchor 2 answers twice, then stops
     with emu:
@@ -122,7 +122,7 @@ def test_partial_sum_of_a_timed_out_anchor_is_caught_by_the_driver():
 
 
 def test_the_emulated_tag_waits_for_s_and_stops_for_good_on_f():
-    scene = Scene(EnvConfig.from_dict({"sim": STATIC}).sim, seed=5)
+    scene = Scene(EnvConfig.from_dict({"sim": STATIC}).sim, seed=5, speedup=0.0)  # frozen: draws independent of wall time
     dev = TiersTagDevice(scene, 0)
     t = 0.0
     assert b"Singled Sided Two Way Ranging INIT" in dev.poll(t)
@@ -185,7 +185,7 @@ class _Chunks:
 def test_lost_characters_inside_a_byte_are_rejected_by_continuity(max_jump_m):
     from uwb_env.hardware.emulator import Faults
 
-    scene = Scene(EnvConfig.from_dict({"sim": STATIC}).sim, seed=6)
+    scene = Scene(EnvConfig.from_dict({"sim": STATIC}).sim, seed=6, speedup=0.0)  # frozen: draws independent of wall time
     dev = TiersTagDevice(scene, 0, faults=Faults(drop_char_probability=0.006), seed=7)
     dev.poll(0.0)
     dev.receive(b"S", 0.0)
