@@ -9,6 +9,10 @@ or worse. Targets: ratio <= 1.05, zero rounds at 10x. Robust (``loss="cauchy"``,
 rejection) with 30 % of links biased by Exp(mean 0.5 m): median per-round ratio to the clean
 bound <= 2, under 5 % of rounds at 10x.
 
+Noise-free sparse graphs (``exact_shape_rate_noise_free_*``, ``flip_flagged_rate_noise_free_*``):
+pairs dropped at random from N = 8-16 anchors; where the graph is globally rigid (one shape fits)
+the default call must return it exactly, where it has a flip it must say ``ambiguous``.
+
 Accuracy is also reported over the rounds the solver called unambiguous
 (``rmse_over_crlb_unambiguous_*``, ``ambiguous_rate_*``): on thin strips the paper frame's
 reflection rule (the anchors' y coordinates sum positive) is often within noise of flipping,
@@ -51,6 +55,7 @@ from uwb_env.localization.calibration import _free_mask, default_range_std_m, tr
 from uwb_env.localization.errors import LocalizationError  # noqa: E402
 from uwb_env.localization.models import PairRangeModel  # noqa: E402
 from uwb_env.localization.pair_solver import _structure, pair_structure, solve_pair_ranges  # noqa: E402
+from uwb_env.localization.rigidity import generically_globally_rigid  # noqa: E402
 from uwb_env.measurements import RangeMatrix  # noqa: E402
 
 SIGMA = default_range_std_m()
@@ -108,13 +113,33 @@ def bound_trace(x, k, pairs=None):
     return t if np.isfinite(t) and t > 0 else None
 
 
+def weighted_chi2(x, pairs, dist, var) -> float:
+    r = np.linalg.norm(x[pairs[:, 0]] - x[pairs[:, 1]], axis=1) - dist
+    return float((r * r / var).sum())
+
+
+def truth_basin_chi2(m: RangeMatrix, truth: np.ndarray) -> float:
+    """Chi-square of the least-squares solution started at the truth (in the paper frame), with
+    the default call's weights: what a solver that never misses the truth's basin reaches."""
+    known = RangeMatrix(m.mean_m, np.full(m.std_m.shape, SIGMA), m.count)
+    pairs, dist, var = known.symmetric()
+    n = m.n_anchors
+    structure = pair_structure(pairs, n, 2, _free_mask(n, 2, (0, 1, 2)))
+    x = solve_pair_ranges(structure, truth, dist, 1.0 / var).positions
+    return weighted_chi2(x, pairs, dist, var)
+
+
 def accuracy_case(kind, n, k, trials, rng, missing=0.0, nlos=0.0, loss="linear", extra=None):
     """RMSE/sqrt(CRLB) over trials (a new layout every trial: the figure covers the layout
     distribution), the fraction of rounds at >= 10x the bound, the fraction of those reported
     converged, and the per-round ratios. ``extra`` (a dict) receives the same ratio over the
     rounds the solver reported unambiguous, and the share of ambiguous rounds (the paper
-    frame's reflection rule within noise of flipping, or two shapes that fit alike)."""
+    frame's reflection rule within noise of flipping, or two shapes that fit alike), and for
+    the plain loss the rounds whose answer fits worse than the truth's basin (a missed global
+    minimum) and the rounds at >= 10x that fit at least as well as it (the least-squares
+    optimum itself is that far off: no solver of this cost can do better)."""
     sq, tr, ratios, wrong_ok, fails, certain = [], [], [], 0, 0, []
+    missed, over_at_optimum = 0, 0
     while len(ratios) < trials:
         x = layout(kind, n, rng)
         mask, kept = drop_pairs(n, missing, rng) if missing else (None, None)
@@ -129,6 +154,12 @@ def accuracy_case(kind, n, k, trials, rng, missing=0.0, nlos=0.0, loss="linear",
             e2 = float(((res.positions - truth) ** 2).sum())
             ok = res.converged and not res.ambiguous
             certain.append(not res.ambiguous)
+            if loss == "linear" and extra is not None:
+                pairs, dist, var = RangeMatrix(m.mean_m, np.full(m.std_m.shape, SIGMA), m.count).symmetric()
+                ours, best = weighted_chi2(res.positions, pairs, dist, var), truth_basin_chi2(m, truth)
+                above = ours > best + 1e-6 * max(best, 1.0)
+                missed += bool(above)
+                over_at_optimum += bool(not above and np.sqrt(e2 / t) >= 10)
         except LocalizationError:
             e2, ok, fails = np.inf, False, fails + 1
             certain.append(False)
@@ -146,7 +177,38 @@ def accuracy_case(kind, n, k, trials, rng, missing=0.0, nlos=0.0, loss="linear",
                                 if sure.any() else float("nan"))
         extra["ambiguous_rate"] = float(1.0 - np.mean(certain))
         extra["over_10x_unambiguous"] = int(np.sum((ratios >= 10) & sure))
+        extra["missed_global_minimum"] = missed
+        extra["over_10x_at_optimum"] = over_at_optimum
     return rmse_ratio, float((ratios >= 10).mean()), wrong_ok / trials, fails / trials, ratios
+
+
+def noise_free_sparse(n, frac, draws, rng):
+    """Noise-free ranges on random rigid graphs with ``frac`` of the pairs missing: on globally
+    rigid graphs the default call must return the exact shape (within 1 mm after rigid
+    alignment); on graphs with a flip (rigid, not globally rigid) it must say ``ambiguous``.
+    Returns (exact, globally rigid draws), (flagged, draws with a flip), median ms per call."""
+    exact = rigid = flagged = flippable = 0
+    times = []
+    while rigid + flippable < draws:
+        x = layout("random", n, rng)
+        mask, kept = drop_pairs(n, frac, rng)
+        if bound_trace(x, K, kept) is None:
+            continue  # flexible: outside the claim
+        d = np.linalg.norm(x[:, None] - x[None], axis=-1)
+        d[mask] = np.nan
+        t0 = time.perf_counter()
+        try:
+            res = calibrate_anchors(d, range_std_m=SIGMA)
+        except LocalizationError:
+            res = None
+        times.append(time.perf_counter() - t0)
+        if generically_globally_rigid(kept, n, 2):
+            rigid += 1
+            exact += bool(res is not None and res.status == "ok" and aligned_errors(res.positions, x).max() < 1e-3)
+        else:
+            flippable += 1
+            flagged += bool(res is None or res.ambiguous)
+    return (exact, rigid), (flagged, flippable), 1e3 * float(np.median(times))
 
 
 def nees(n, trials, rng, k=K):
@@ -215,7 +277,7 @@ def main(argv=None) -> dict:
     start = time.perf_counter()
 
     rows = []
-    worst_ratio, worst_over, worst_sure, over_sure = 0.0, 0, 0.0, 0
+    worst_ratio, worst_over, worst_sure, over_sure, missed_total = 0.0, 0, 0.0, 0, 0
     for kind in ("random", "paper", "thin"):
         for n in (3, 4, 8, 16, 32):
             for k in (5, 50):
@@ -227,13 +289,17 @@ def main(argv=None) -> dict:
                 fig[f"rmse_over_crlb_unambiguous_{key}"] = extra["unambiguous"]
                 fig[f"ambiguous_rate_{key}"] = extra["ambiguous_rate"]
                 fig[f"rounds_over_10x_unambiguous_{key}"] = extra["over_10x_unambiguous"]
+                fig[f"rounds_missed_global_minimum_{key}"] = extra["missed_global_minimum"]
+                fig[f"rounds_over_10x_at_least_squares_optimum_{key}"] = extra["over_10x_at_optimum"]
+                missed_total += extra["missed_global_minimum"]
                 fig[f"rounds_over_10x_{key}"] = int(round(over * t))
                 fig[f"trials_{key}"] = t
                 worst_ratio, worst_over = max(worst_ratio, ratio), worst_over + int(round(over * t))
                 worst_sure = max(worst_sure, extra["unambiguous"])
                 over_sure += extra["over_10x_unambiguous"]
                 rows.append([key, t, ratio, int(round(over * t)), wrong_ok, fails, extra["unambiguous"],
-                             extra["ambiguous_rate"], extra["over_10x_unambiguous"]])
+                             extra["ambiguous_rate"], extra["over_10x_unambiguous"], extra["missed_global_minimum"],
+                             extra["over_10x_at_optimum"]])
     for frac, tag in ((0.2, "missing20"), (0.3, "missing30")):
         extra = {}
         ratio, over, wrong_ok, fails, _ = accuracy_case("random", 8, K, trials, rng, missing=frac, extra=extra)
@@ -243,15 +309,37 @@ def main(argv=None) -> dict:
         fig[f"fold_rate_{tag}_n8"] = over
         fig[f"wrong_converged_rate_{tag}_n8"] = wrong_ok
         fig[f"rounds_over_10x_{tag}_n8"] = int(round(over * trials))
+        fig[f"rounds_missed_global_minimum_{tag}_n8"] = extra["missed_global_minimum"]
+        fig[f"rounds_over_10x_at_least_squares_optimum_{tag}_n8"] = extra["over_10x_at_optimum"]
+        missed_total += extra["missed_global_minimum"]
         rows.append([f"random_n8_k{K}_{tag}", trials, ratio, int(round(over * trials)), wrong_ok, fails,
-                     extra["unambiguous"], extra["ambiguous_rate"], extra["over_10x_unambiguous"]])
+                     extra["unambiguous"], extra["ambiguous_rate"], extra["over_10x_unambiguous"],
+                     extra["missed_global_minimum"], extra["over_10x_at_optimum"]])
     fig["rmse_over_crlb_default_worst"] = worst_ratio
     fig["rounds_over_10x_total"] = worst_over
     fig["rmse_over_crlb_unambiguous_worst"] = worst_sure
     fig["rounds_over_10x_unambiguous_total"] = over_sure
+    fig["rounds_missed_global_minimum_total"] = missed_total
     print_table(f"Default call calibrate_anchors(rm): sigma={SIGMA:.4f} m (targets ratio <= 1.05, 0 rounds >= 10x)",
                 ["case", "trials", "RMSE/sqrt(CRLB)", "rounds >= 10x", "wrong & converged & not ambiguous rate",
-                 "error rate", "ratio, unambiguous rounds", "ambiguous rate", ">= 10x & unambiguous"], rows)
+                 "error rate", "ratio, unambiguous rounds", "ambiguous rate", ">= 10x & unambiguous",
+                 "missed global minimum", ">= 10x at the LS optimum"], rows)
+
+    rows = []
+    sparse_rng = np.random.default_rng(1)  # its own stream: the sections after it draw as before
+    for n, frac in ((8, 0.3), (10, 0.4), (16, 0.3)):
+        tag = f"missing{int(frac * 100)}_n{n}"
+        exact, flagged, ms = noise_free_sparse(n, frac, max(trials // 2, 20), sparse_rng)
+        fig[f"exact_shape_rate_noise_free_{tag}"] = exact[0] / max(exact[1], 1)
+        fig[f"flip_flagged_rate_noise_free_{tag}"] = flagged[0] / flagged[1] if flagged[1] else float("nan")
+        fig[f"globally_rigid_draws_noise_free_{tag}"] = exact[1]
+        fig[f"first_calibrate_ms_{tag}"] = ms
+        rows.append([tag, exact[1], exact[0] / max(exact[1], 1), flagged[1],
+                     flagged[0] / flagged[1] if flagged[1] else float("nan"), ms])
+    print_table("Noise-free ranges, pairs missing at random (rigid graphs): globally rigid graphs must give the exact "
+                "shape (target rate 1), graphs with a flip must be flagged ambiguous (target 1)",
+                ["case", "globally rigid draws", "exact shape rate", "draws with a flip", "flagged ambiguous rate",
+                 "median ms per call"], rows)
 
     rows = []
     for n in (8, 16):

@@ -47,6 +47,7 @@ from scipy.sparse.csgraph import shortest_path
 from scipy.special import chdtrc, chdtri
 
 from uwb_env.localization.alignment import frame_refs, paper_frame, rigid_align
+from uwb_env.localization.buildup import buildup_starts
 from uwb_env.localization.errors import (
     DisconnectedGraphError,
     GeometryError,
@@ -55,6 +56,7 @@ from uwb_env.localization.errors import (
     TooFewAnchorsError,
 )
 from uwb_env.localization.pair_solver import PairStructure, pair_structure, solve_pair_ranges
+from uwb_env.localization.rigidity import generically_globally_rigid
 from uwb_env.localization.robust import check_loss
 from uwb_env.measurements import NEGATIVE_RANGE_TOLERANCE_M, RangeMatrix, _pair_index
 
@@ -249,11 +251,14 @@ def calibrate_anchors(
             raise SolverArgumentError(f"prior_std_m={prior_std_m!r}: must be finite and > 0 for every anchor")
         problem.prior, problem.prior_weight = prior, dim / std**2
     best, ambiguous = problem.select(candidates, prior)
-    if len(pairs) < n * (n - 1) // 2 and (prior is None or not best.fit_ok):
+    sparse = len(pairs) < n * (n - 1) // 2
+    if sparse and (prior is None or not best.fit_ok):
         # Missing pairs: every deterministic start can sit in a fold whose cost is 100x the
         # truth's, or the graph may admit a second shape (flip) that fits as well, which only
-        # another basin reveals (then ``ambiguous``). More basins: SMACOF from seeded random shapes.
-        more = problem.solve_starts(refs, _random_smacof_starts(problem, RANDOM_STARTS))
+        # another basin reveals (then ``ambiguous``). More basins: sequential placements that
+        # branch over each anchor's mirror choice (``buildup``), and SMACOF from seeded random
+        # shapes. (On complete graphs with NLOS outliers the placements found no better basin.)
+        more = problem.solve_starts(refs, _buildup_starts(problem) + _random_smacof_starts(problem, RANDOM_STARTS))
         if more:
             candidates += more
             best, ambiguous = problem.select(candidates, prior)
@@ -264,6 +269,11 @@ def calibrate_anchors(
     if reject_outliers and not best.fit_ok:
         best = problem.reject_outliers(refs, best)
         best = problem.check_rejected(best)
+    if prior is None and not ambiguous and (sparse or not best.keep.all()) \
+            and not generically_globally_rigid(pairs[best.keep], n, dim):
+        # the pairs admit a second shape that fits them as well (e.g. an anchor linked to only
+        # dim others, mirrored across them): however well this one fits, it may be the mirror
+        ambiguous = True
     return _finish(problem, best, refs, prior, gauge, tried, ambiguous)
 
 
@@ -721,6 +731,15 @@ def _cold_starts(problem: _Problem, initializer: str) -> list[tuple[str, np.ndar
 
 
 RANDOM_STARTS = 12
+
+
+def _buildup_starts(problem: _Problem) -> list[tuple[str, np.ndarray]]:
+    """Sequential placements branching over each anchor's mirror choice (``buildup``)."""
+    n, pairs = problem.n, problem.pairs
+    weight = np.zeros((n, n))
+    weight[pairs[:, 0], pairs[:, 1]] = weight[pairs[:, 1], pairs[:, 0]] = problem.inv_var
+    tol = 3.0 * float(np.sqrt(problem.var.max()))
+    return [("buildup", x) for x in buildup_starts(problem.full, weight, problem.dim, tol)]
 
 
 def _random_smacof_starts(problem: _Problem, count: int) -> list[tuple[str, np.ndarray]]:

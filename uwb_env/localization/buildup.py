@@ -1,0 +1,209 @@
+"""Build-up starts: anchors placed one at a time from their ranges, branching over mirror choices.
+
+With pairs missing, every start that embeds the whole matrix at once (MDS on shortest-path
+filled ranges, SMACOF from random shapes) can land in a fold: an anchor with few links mirrored
+across the line (plane) through its neighbours, a basin whose cost is 10-1000x the truth's.
+Placing anchors in turn instead (a triangle first, then each anchor from its ranges to anchors
+already placed) makes the folds a discrete choice per anchor: the two intersections of its
+circles (spheres), each refined on all its ranges to placed anchors. Keeping the ``beam``
+partial shapes of lowest weighted misfit over those choices searches the folds one anchor at a
+time (a beam search over sequential trilateration), instead of hoping that a random start
+lands in the right basin. Noise-free, with a placement order (each anchor after the seed has
+>= dim links to earlier ones) and a wide enough beam, the true shape is among the results.
+
+The results are starts for the least-squares solver, not solutions.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+SEED_TRIANGLES = 3
+BEAM = 8
+KEEP = 4  # starts handed on per seed: the lowest final misfits
+REFINE_ITERATIONS = 6
+
+
+def buildup_starts(full: np.ndarray, weight: np.ndarray, dim: int, tol_m: float,
+                   beam: int = BEAM, seeds: int = SEED_TRIANGLES, keep: int = KEEP) -> list[np.ndarray]:
+    """Up to ``seeds * keep`` (n, dim) starts, the lowest-misfit placements of each seed.
+
+    full: (n, n) ranges, NaN where a pair is missing (diagonal 0); weight: (n, n) inverse
+    variances (0 where missing); tol_m: shapes closer than this (max coordinate difference)
+    count as one. Seeds without a placement order give no start (the other starts remain).
+    """
+    n = full.shape[0]
+    linked = np.isfinite(full)
+    np.fill_diagonal(linked, False)
+    starts = []
+    for seed in _seed_triangles(full, linked, seeds):
+        order = _placement_order(linked, seed, dim)
+        if order is None:
+            continue
+        x = np.full((1, n, dim), np.nan)
+        x[0, list(seed)] = _place_triangle(full, seed, dim)
+        cost = np.zeros(1)
+        placed = list(seed)
+        for k in order:
+            nb = [j for j in placed if linked[k, j]]
+            x, cost = _extend(x, cost, full[k, nb], weight[k, nb], nb, k, dim)
+            placed.append(k)
+            x, cost = _prune(x, cost, placed, beam, tol_m)
+        starts.extend(x[i] for i in np.argsort(cost, kind="stable")[:keep])
+    return starts
+
+
+def _seed_triangles(full, linked, count):
+    """The ``count`` fully linked triangles whose smallest altitude (from the ranges) is largest:
+    the best-conditioned frames to place the others from."""
+    # (i, j, k) with i < j < k, every pair linked
+    upper = np.triu(linked, 1)
+    i, j, k = np.nonzero(upper[:, :, None] & upper[:, None, :] & upper[None, :, :])
+    if len(i) == 0:
+        return []
+    a, b, c = full[i, j], full[j, k], full[i, k]
+    s = 0.5 * (a + b + c)
+    area = np.sqrt(np.maximum(s * (s - a) * (s - b) * (s - c), 0.0))
+    altitude = 2.0 * area / np.maximum(np.maximum(a, b), np.maximum(c, 1e-300))
+    best = np.argsort(-altitude, kind="stable")[:count]
+    return [(int(i[t]), int(j[t]), int(k[t])) for t in best if altitude[t] > 0]
+
+
+def _placement_order(linked, seed, dim):
+    """Greedy order: next the unplaced anchor with the most links to placed ones (>= dim);
+    None when some anchor never gets dim links (no sequential placement from this seed)."""
+    n = linked.shape[0]
+    placed = np.zeros(n, dtype=bool)
+    placed[list(seed)] = True
+    order = []
+    while not placed.all():
+        links = np.where(placed, -1, linked[:, placed].sum(1))
+        k = int(np.argmax(links))
+        if links[k] < dim:
+            return None
+        order.append(k)
+        placed[k] = True
+    return order
+
+
+def _place_triangle(full, seed, dim):
+    i, j, k = seed
+    d_ij, d_ik, d_jk = full[i, j], full[i, k], full[j, k]
+    xk = (d_ik**2 - d_jk**2 + d_ij**2) / (2.0 * d_ij)
+    yk = np.sqrt(max(d_ik**2 - xk**2, 0.0))
+    pts = np.zeros((3, dim))
+    pts[1, 0] = d_ij
+    pts[2, 0], pts[2, 1] = xk, yk
+    return pts
+
+
+def _extend(x, cost, ranges, weight, nb, k, dim):
+    """Both mirror placements of anchor k in every state, refined on its ranges to ``nb``."""
+    ref = x[:, nb]  # (S, m, dim)
+    cands = _intersections(ref, ranges, dim)  # (S, 2, dim)
+    s = x.shape[0]
+    ref2 = np.repeat(ref, 2, axis=0)
+    p = cands.reshape(2 * s, dim)
+    if len(nb) > dim:
+        p = _refine(p, ref2, ranges, weight)
+    resid = np.linalg.norm(ref2 - p[:, None], axis=-1) - ranges
+    new_cost = np.repeat(cost, 2) + (weight * resid * resid).sum(1)
+    new_x = np.repeat(x, 2, axis=0)
+    new_x[:, k] = p
+    return new_x, new_cost
+
+
+def _intersections(ref, ranges, dim):
+    """Per state, the two points at the measured ranges from the two (2D) or three (3D)
+    best-spread neighbours: mirror images across their line (plane). Circles that miss each
+    other (noise) give their closest approach twice."""
+    a, b = _spread_pair(ref[0])
+    if dim == 2:
+        pa, pb = ref[:, a], ref[:, b]
+        d = np.linalg.norm(pb - pa, axis=1)
+        d = np.maximum(d, 1e-300)
+        u = (pb - pa) / d[:, None]
+        along = (ranges[a] ** 2 - ranges[b] ** 2 + d * d) / (2.0 * d)
+        h = np.sqrt(np.maximum(ranges[a] ** 2 - along**2, 0.0))
+        perp = np.column_stack([-u[:, 1], u[:, 0]])
+        mid = pa + along[:, None] * u
+        return np.stack([mid + h[:, None] * perp, mid - h[:, None] * perp], axis=1)
+    c = _third_reference(ref[0], a, b)
+    pa, pb, pc = ref[:, a], ref[:, b], ref[:, c]
+    ex = pb - pa
+    d = np.maximum(np.linalg.norm(ex, axis=1), 1e-300)
+    ex = ex / d[:, None]
+    i = ((pc - pa) * ex).sum(1)
+    ey = pc - pa - i[:, None] * ex
+    j = np.maximum(np.linalg.norm(ey, axis=1), 1e-300)
+    ey = ey / j[:, None]
+    ez = np.cross(ex, ey)
+    ra, rb, rc = ranges[a], ranges[b], ranges[c]
+    px = (ra**2 - rb**2 + d * d) / (2.0 * d)
+    py = (ra**2 - rc**2 + i * i + j * j) / (2.0 * j) - i / j * px
+    pz = np.sqrt(np.maximum(ra**2 - px**2 - py**2, 0.0))
+    base = pa + px[:, None] * ex + py[:, None] * ey
+    return np.stack([base + pz[:, None] * ez, base - pz[:, None] * ez], axis=1)
+
+
+def _spread_pair(pts):
+    """The two neighbours farthest apart (the best-conditioned intersection base)."""
+    d = np.linalg.norm(pts[:, None] - pts[None], axis=-1)
+    a, b = np.unravel_index(int(np.argmax(d)), d.shape)
+    return int(a), int(b)
+
+
+def _third_reference(pts, a, b):
+    """The neighbour farthest from the line through a and b (3D: the plane's third point)."""
+    u = pts[b] - pts[a]
+    u = u / max(np.linalg.norm(u), 1e-300)
+    off = pts - pts[a]
+    off = off - (off @ u)[:, None] * u
+    dist = np.linalg.norm(off, axis=1)
+    dist[[a, b]] = -1.0
+    return int(np.argmax(dist))
+
+
+@njit(cache=True)
+def _refine(p, ref, ranges, weight):
+    """A few weighted Gauss-Newton steps of each point on its ranges (all states at once);
+    a singular normal matrix leaves the point where it is."""
+    s_count, m, dim = ref.shape
+    p = p.copy()
+    for s in range(s_count):
+        for _ in range(REFINE_ITERATIONS):
+            h = np.zeros((dim, dim))
+            g = np.zeros(dim)
+            for j in range(m):
+                d2 = 0.0
+                for a in range(dim):
+                    d2 += (p[s, a] - ref[s, j, a]) ** 2
+                dist = max(np.sqrt(d2), 1e-12)
+                r = dist - ranges[j]
+                for a in range(dim):
+                    ja = (p[s, a] - ref[s, j, a]) / dist
+                    g[a] += weight[j] * ja * r
+                    for b in range(dim):
+                        h[a, b] += weight[j] * ja * (p[s, b] - ref[s, j, b]) / dist
+            if abs(np.linalg.det(h)) <= 1e-12 * max(h[0, 0], 1e-300) ** dim:
+                break
+            p[s] -= np.linalg.solve(h, g)
+    return p
+
+
+def _prune(x, cost, placed, beam, tol_m):
+    """The ``beam`` lowest-misfit states, one per shape (states within tol_m of a kept one)."""
+    order = np.argsort(cost, kind="stable")
+    order = order[np.isfinite(cost[order])]
+    if len(order) == 0:
+        return x[:1], cost[:1]
+    pts = x[order][:, placed]
+    same = (np.abs(pts[:, None] - pts[None]).max(axis=(2, 3)) <= tol_m)
+    kept = []
+    for a in range(len(order)):
+        if not any(same[a, b] for b in kept):
+            kept.append(a)
+            if len(kept) == beam:
+                break
+    return x[order[kept]], cost[order[kept]]

@@ -1,0 +1,48 @@
+"""Whether a pair graph determines a unique shape: generic global rigidity.
+
+A rigid graph can still have several shapes with the same ranges: a quadrilateral with one
+diagonal folds across it, an anchor linked to only two others (2D) mirrors across their line.
+Noise-free, both shapes fit exactly, so no solver can tell them apart and a fit reported without
+that caveat is a coin toss reported as a position. Gortler, Healy and Thurston (2010,
+"Characterizing generic global rigidity", Amer. J. Math. 132) showed a graph on n >= d + 2
+vertices is globally rigid in R^d for generic positions iff it has an equilibrium stress whose
+stress matrix has rank n - d - 1, a test that one random generic configuration decides with
+probability 1 (their randomized algorithm). Used for first calibrations with missing pairs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def generically_globally_rigid(pairs: np.ndarray, n: int, dim: int, seed: int = 0) -> bool:
+    """True when the graph (``pairs``: (m, 2) anchor indices) has one realization in ``dim``
+    dimensions up to rotation, translation and reflection, for generic anchor positions."""
+    pairs = np.asarray(pairs, dtype=int).reshape(-1, 2)
+    if n <= dim + 1:  # a simplex: unique iff every pair is measured
+        return len({(min(i, j), max(i, j)) for i, j in pairs if i != j}) == n * (n - 1) // 2
+    rng = np.random.default_rng(seed)
+    p = rng.standard_normal((n, dim))
+    i, j = pairs[:, 0], pairs[:, 1]
+    edge = p[i] - p[j]
+    rows = np.arange(len(pairs))
+    rigidity = np.zeros((len(pairs), n, dim))
+    rigidity[rows, i] = edge
+    rigidity[rows, j] = -edge
+    rigidity = rigidity.reshape(len(pairs), n * dim)
+    # a random equilibrium stress: a random vector's residual off the rigidity matrix's column
+    # space (the left null space), generic in the stress space with probability 1
+    v = rng.standard_normal(len(pairs))
+    coef, _, rank, _ = np.linalg.lstsq(rigidity, v, rcond=1e-9)
+    if rank < n * dim - dim * (dim + 1) // 2:
+        return False  # flexible: not even locally rigid
+    w = v - rigidity @ coef
+    if np.linalg.norm(w) <= 1e-9 * np.linalg.norm(v):
+        return False  # no stress (minimally rigid): every such graph (n >= d + 2) has a flip
+    omega = np.zeros((n, n))
+    np.add.at(omega, (i, j), -w)
+    np.add.at(omega, (j, i), -w)
+    np.add.at(omega, (i, i), w)
+    np.add.at(omega, (j, j), w)
+    ev = np.abs(np.linalg.eigvalsh(omega))
+    return int((ev > 1e-8 * ev.max()).sum()) == n - dim - 1
