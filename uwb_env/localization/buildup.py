@@ -26,12 +26,16 @@ REFINE_ITERATIONS = 6
 
 
 def buildup_starts(full: np.ndarray, weight: np.ndarray, dim: int, tol_m: float,
-                   beam: int = BEAM, seeds: int = SEED_TRIANGLES, keep: int = KEEP) -> list[np.ndarray]:
+                   beam: int = BEAM, seeds: int = SEED_TRIANGLES, keep: int = KEEP, robust_c=None) -> list[np.ndarray]:
     """Up to ``seeds * keep`` (n, dim) starts, the lowest-misfit placements of each seed.
 
     full: (n, n) ranges, NaN where a pair is missing (diagonal 0); weight: (n, n) inverse
     variances (0 where missing); tol_m: shapes closer than this (max coordinate difference)
     count as one. Seeds without a placement order give no start (the other starts remain).
+    robust_c (2D): ranges measured longer than a placement says are NLOS candidates: each
+    anchor is placed from every pair of its first five neighbours (not only the best-spread
+    pair, which one biased range would spoil) and refined and ranked with those ranges
+    down-weighted (one-sided Cauchy, scale robust_c in standard deviations).
     """
     n = full.shape[0]
     linked = np.isfinite(full)
@@ -47,7 +51,7 @@ def buildup_starts(full: np.ndarray, weight: np.ndarray, dim: int, tol_m: float,
         placed = list(seed)
         for k in order:
             nb = [j for j in placed if linked[k, j]]
-            x, cost = _extend(x, cost, full[k, nb], weight[k, nb], nb, k, dim)
+            x, cost = _extend(x, cost, full[k, nb], weight[k, nb], nb, k, dim, robust_c)
             placed.append(k)
             x, cost = _prune(x, cost, placed, beam, tol_m)
         starts.extend(x[i] for i in np.argsort(cost, kind="stable")[:keep])
@@ -98,27 +102,38 @@ def _place_triangle(full, seed, dim):
     return pts
 
 
-def _extend(x, cost, ranges, weight, nb, k, dim):
-    """Both mirror placements of anchor k in every state, refined on its ranges to ``nb``."""
+def _extend(x, cost, ranges, weight, nb, k, dim, robust_c=None):
+    """Both mirror placements of anchor k in every state (from each base pair of neighbours),
+    refined on its ranges to ``nb``; the states' misfits grow by the placement's."""
     ref = x[:, nb]  # (S, m, dim)
-    cands = _intersections(ref, ranges, dim)  # (S, 2, dim)
     s = x.shape[0]
-    ref2 = np.repeat(ref, 2, axis=0)
-    p = cands.reshape(2 * s, dim)
+    if robust_c is None or len(nb) <= dim or dim != 2:
+        bases = [_spread_pair(ref[0])]
+    else:
+        m = min(len(nb), 5)
+        bases = [(a, b) for a in range(m) for b in range(a + 1, m)]
+    cands = np.concatenate([_intersections(ref, ranges, dim, base) for base in bases], axis=1)  # (S, 2B, dim)
+    c = cands.shape[1]
+    ref2 = np.repeat(ref, c, axis=0)
+    p = cands.reshape(c * s, dim)
     if len(nb) > dim:
-        p = _refine(p, ref2, ranges, weight)
+        p = _refine(p, ref2, ranges, weight, -1.0 if robust_c is None else robust_c)
     resid = np.linalg.norm(ref2 - p[:, None], axis=-1) - ranges
-    new_cost = np.repeat(cost, 2) + (weight * resid * resid).sum(1)
-    new_x = np.repeat(x, 2, axis=0)
+    z2 = weight * resid * resid
+    if robust_c is not None:
+        # residual model - measured < 0: measured longer, an NLOS candidate (robust.py's nlos loss)
+        z2 = np.where(resid < 0, robust_c**2 * np.log1p(z2 / robust_c**2), z2)
+    new_cost = np.repeat(cost, c) + z2.sum(1)
+    new_x = np.repeat(x, c, axis=0)
     new_x[:, k] = p
     return new_x, new_cost
 
 
-def _intersections(ref, ranges, dim):
+def _intersections(ref, ranges, dim, base):
     """Per state, the two points at the measured ranges from the two (2D) or three (3D)
     best-spread neighbours: mirror images across their line (plane). Circles that miss each
     other (noise) give their closest approach twice."""
-    a, b = _spread_pair(ref[0])
+    a, b = base
     if dim == 2:
         pa, pb = ref[:, a], ref[:, b]
         d = np.linalg.norm(pb - pa, axis=1)
@@ -166,13 +181,14 @@ def _third_reference(pts, a, b):
 
 
 @njit(cache=True)
-def _refine(p, ref, ranges, weight):
+def _refine(p, ref, ranges, weight, robust_c):
     """A few weighted Gauss-Newton steps of each point on its ranges (all states at once);
-    a singular normal matrix leaves the point where it is."""
+    a singular normal matrix leaves the point where it is. robust_c > 0: ranges measured
+    longer than the point says (NLOS) are down-weighted (one-sided Cauchy, scale robust_c)."""
     s_count, m, dim = ref.shape
     p = p.copy()
     for s in range(s_count):
-        for _ in range(REFINE_ITERATIONS):
+        for _ in range(REFINE_ITERATIONS if robust_c <= 0 else 3 * REFINE_ITERATIONS):
             h = np.zeros((dim, dim))
             g = np.zeros(dim)
             for j in range(m):
@@ -181,11 +197,14 @@ def _refine(p, ref, ranges, weight):
                     d2 += (p[s, a] - ref[s, j, a]) ** 2
                 dist = max(np.sqrt(d2), 1e-12)
                 r = dist - ranges[j]
+                w = weight[j]
+                if robust_c > 0 and r < 0:
+                    w = w / (1.0 + w * r * r / robust_c**2)
                 for a in range(dim):
                     ja = (p[s, a] - ref[s, j, a]) / dist
-                    g[a] += weight[j] * ja * r
+                    g[a] += w * ja * r
                     for b in range(dim):
-                        h[a, b] += weight[j] * ja * (p[s, b] - ref[s, j, b]) / dist
+                        h[a, b] += w * ja * (p[s, b] - ref[s, j, b]) / dist
             if abs(np.linalg.det(h)) <= 1e-12 * max(h[0, 0], 1e-300) ** dim:
                 break
             p[s] -= np.linalg.solve(h, g)
@@ -195,7 +214,7 @@ def _refine(p, ref, ranges, weight):
 def _prune(x, cost, placed, beam, tol_m):
     """The ``beam`` lowest-misfit states, one per shape (states within tol_m of a kept one)."""
     order = np.argsort(cost, kind="stable")
-    order = order[np.isfinite(cost[order])]
+    order = order[np.isfinite(cost[order])][: 4 * beam]  # duplicates beyond these cannot matter much
     if len(order) == 0:
         return x[:1], cost[:1]
     pts = x[order][:, placed]
