@@ -154,3 +154,15 @@ def test_scheduler_env_runs_on_emulated_devices():
         world.close()
     assert truncated and not terminated
     assert info["calibration_count"] == 2 and info["ground_truth"] is False
+
+
+def test_scene_range_noise_does_not_depend_on_how_far_wall_time_moved_the_world():
+    # a stalled test thread lets the wall-clock world take more steps before a measurement:
+    # that may move the robots, but must not change the noise the next ranges draw
+    cfg = EnvConfig.from_dict({})
+    fresh, stalled = Scene(cfg.sim, seed=7, speedup=0.0), Scene(cfg.sim, seed=7, speedup=0.0)
+    for _ in range(25):
+        stalled.world.step()
+    a, b = np.zeros(2), np.array([3.0, 4.0])
+    np.testing.assert_array_equal(fresh.measure(a, b, 10), stalled.measure(a, b, 10))
+    assert not np.array_equal(fresh.world.anchors_true, stalled.world.anchors_true)  # it did move

@@ -60,13 +60,18 @@ class Faults(ConfigBase):
 
 
 class Scene:
-    """The simulator's world stepped in wall-clock time; thread-safe."""
+    """The simulator's world stepped in wall-clock time; thread-safe.
+
+    The world's motion and the range noise draw from two streams of the seed: how many world
+    steps wall time allowed before a measurement (a loaded machine stalls a thread) then changes
+    where the robots are, never which noise the next range gets."""
 
     def __init__(self, config: SimConfig | None = None, seed: int = 0, speedup: float = 1.0):
         self.config = config or SimConfig()
         self.world = World(self.config)
-        self.rng = np.random.default_rng(seed)
-        self.world.reset(self.rng)
+        world_seed, range_seed = np.random.SeedSequence(seed).spawn(2)
+        self.rng = np.random.default_rng(range_seed)
+        self.world.reset(np.random.default_rng(world_seed))
         self.speedup = speedup
         self._t0 = time.monotonic()
         self.lock = threading.Lock()
