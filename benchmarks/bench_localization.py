@@ -13,6 +13,12 @@ Noise-free sparse graphs (``exact_shape_rate_noise_free_*``, ``flip_flagged_rate
 pairs dropped at random from N = 8-16 anchors; where the graph is globally rigid (one shape fits)
 the default call must return it exactly, where it has a flip it must say ``ambiguous``.
 
+Per case also: ``rounds_missed_global_minimum_*``, rounds whose answer fits the ranges worse than
+the least-squares solve started at the truth (a search failure), and
+``rounds_over_10x_at_least_squares_optimum_*``, rounds at >= 10x whose answer fits at least as
+well as that truth-started solve (the least-squares criterion itself prefers the far shape; rounds
+that raised are counted in the >= 10x figures but in neither of these).
+
 Accuracy is also reported over the rounds the solver called unambiguous
 (``rmse_over_crlb_unambiguous_*``, ``ambiguous_rate_*``): on thin strips the paper frame's
 reflection rule (the anchors' y coordinates sum positive) is often within noise of flipping,
@@ -55,7 +61,6 @@ from uwb_env.localization.calibration import _free_mask, default_range_std_m, tr
 from uwb_env.localization.errors import LocalizationError  # noqa: E402
 from uwb_env.localization.models import PairRangeModel  # noqa: E402
 from uwb_env.localization.pair_solver import _structure, pair_structure, solve_pair_ranges  # noqa: E402
-from uwb_env.localization.rigidity import generically_globally_rigid  # noqa: E402
 from uwb_env.measurements import RangeMatrix  # noqa: E402
 
 SIGMA = default_range_std_m()
@@ -125,7 +130,8 @@ def truth_basin_chi2(m: RangeMatrix, truth: np.ndarray) -> float:
     pairs, dist, var = known.symmetric()
     n = m.n_anchors
     structure = pair_structure(pairs, n, 2, _free_mask(n, 2, (0, 1, 2)))
-    x = solve_pair_ranges(structure, truth, dist, 1.0 / var).positions
+    # a generous budget: a truth-started solve stopped early would flatter "ours" by comparison
+    x = solve_pair_ranges(structure, truth, dist, 1.0 / var, max_iterations=500).positions
     return weighted_chi2(x, pairs, dist, var)
 
 
@@ -182,6 +188,35 @@ def accuracy_case(kind, n, k, trials, rng, missing=0.0, nlos=0.0, loss="linear",
     return rmse_ratio, float((ratios >= 10).mean()), wrong_ok / trials, fails / trials, ratios
 
 
+def three_connected_and_redundantly_rigid(pairs, n) -> bool:
+    """Generic global rigidity in 2D by Jackson and Jordan's characterization (2005: a graph on
+    >= 4 vertices is globally rigid iff 3-connected and redundantly rigid), checked directly:
+    every two vertices removed leave it connected, every edge removed leaves it rigid (rank of
+    the rigidity matrix at random positions). Independent of the solver's stress-matrix test."""
+    if n <= 3:
+        return len(pairs) == n * (n - 1) // 2
+    adj = np.zeros((n, n), dtype=bool)
+    adj[pairs[:, 0], pairs[:, 1]] = adj[pairs[:, 1], pairs[:, 0]] = True
+    for u in range(n):
+        for v in range(u + 1, n):
+            rest = [k for k in range(n) if k not in (u, v)]
+            seen, stack = {rest[0]}, [rest[0]]
+            while stack:
+                k = stack.pop()
+                for j in np.flatnonzero(adj[k]):
+                    if j not in (u, v) and j not in seen:
+                        seen.add(int(j))
+                        stack.append(int(j))
+            if len(seen) < len(rest):
+                return False
+    p = np.random.default_rng(7).standard_normal((n, 2))
+    rows = np.zeros((len(pairs), 2 * n))
+    for e, (i, j) in enumerate(pairs):
+        rows[e, 2 * i:2 * i + 2] = p[i] - p[j]
+        rows[e, 2 * j:2 * j + 2] = p[j] - p[i]
+    return all(np.linalg.matrix_rank(np.delete(rows, e, axis=0)) == 2 * n - 3 for e in range(len(pairs)))
+
+
 def noise_free_sparse(n, frac, draws, rng):
     """Noise-free ranges on random rigid graphs with ``frac`` of the pairs missing: on globally
     rigid graphs the default call must return the exact shape (within 1 mm after rigid
@@ -202,7 +237,7 @@ def noise_free_sparse(n, frac, draws, rng):
         except LocalizationError:
             res = None
         times.append(time.perf_counter() - t0)
-        if generically_globally_rigid(kept, n, 2):
+        if three_connected_and_redundantly_rigid(kept, n):
             rigid += 1
             exact += bool(res is not None and res.status == "ok" and aligned_errors(res.positions, x).max() < 1e-3)
         else:
@@ -323,13 +358,13 @@ def main(argv=None) -> dict:
     print_table(f"Default call calibrate_anchors(rm): sigma={SIGMA:.4f} m (targets ratio <= 1.05, 0 rounds >= 10x)",
                 ["case", "trials", "RMSE/sqrt(CRLB)", "rounds >= 10x", "wrong & converged & not ambiguous rate",
                  "error rate", "ratio, unambiguous rounds", "ambiguous rate", ">= 10x & unambiguous",
-                 "missed global minimum", ">= 10x at the LS optimum"], rows)
+                 "missed global minimum", ">= 10x fitting as well as the truth basin"], rows)
 
     rows = []
     sparse_rng = np.random.default_rng(1)  # its own stream: the sections after it draw as before
     for n, frac in ((8, 0.3), (10, 0.4), (16, 0.3)):
         tag = f"missing{int(frac * 100)}_n{n}"
-        exact, flagged, ms = noise_free_sparse(n, frac, max(trials // 2, 20), sparse_rng)
+        exact, flagged, ms = noise_free_sparse(n, frac, trials, sparse_rng)
         fig[f"exact_shape_rate_noise_free_{tag}"] = exact[0] / max(exact[1], 1)
         fig[f"flip_flagged_rate_noise_free_{tag}"] = flagged[0] / flagged[1] if flagged[1] else float("nan")
         fig[f"globally_rigid_draws_noise_free_{tag}"] = exact[1]
@@ -354,17 +389,20 @@ def main(argv=None) -> dict:
             fig[f"{loss}_nlos30_over10x_rate_n{n}"] = o
             fig[f"{loss}_nlos30_wrong_converged_rate_n{n}"] = w
         rng.bit_generator.state = state
-        _, over, wrong_ok, fails, r = accuracy_case("paper", n, K, t, rng, nlos=0.3, loss="nlos")
+        extra = {}
+        _, over, wrong_ok, fails, r = accuracy_case("paper", n, K, t, rng, nlos=0.3, loss="nlos", extra=extra)
+        fig[f"robust_nlos30_ambiguous_rate_n{n}"] = extra["ambiguous_rate"]
         med = float(np.median(r))
         fig[f"robust_nlos30_median_ratio_n{n}"] = med
         fig[f"robust_nlos30_over10x_rate_n{n}"] = over
         fig[f"robust_nlos30_wrong_converged_rate_n{n}"] = wrong_ok
         _, over_p, _, _, r_p = accuracy_case("paper", n, K, t, rng, nlos=0.3)
         fig[f"plain_nlos30_median_ratio_n{n}"] = float(np.median(r_p))
-        rows.append([n, t, med, over, float(np.median(r_p)), over_p])
+        rows.append([n, t, med, over, extra["ambiguous_rate"], float(np.median(r_p)), over_p])
     print_table("30 % NLOS links (Exp bias, mean 0.5 m): per-round ratio to the clean bound, robust = loss 'nlos' "
                 "(targets robust median <= 2, < 5 % at 10x)",
-                ["anchors", "trials", "robust median", "robust >=10x rate", "plain median", "plain >=10x rate"], rows)
+                ["anchors", "trials", "robust median", "robust >=10x rate", "robust ambiguous rate", "plain median",
+                 "plain >=10x rate"], rows)
 
     fig["nees_default_n8"] = nees(8, trials, rng)
     print(f"\nNEES / dof of the default call, N=8 paper layout, K={K}: {fig['nees_default_n8']:.3f} (target ~1)")

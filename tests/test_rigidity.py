@@ -70,3 +70,14 @@ def test_buildup_without_a_triangle_gives_no_start():
         full[i, (i + 1) % 4] = full[(i + 1) % 4, i] = 5.0
     np.fill_diagonal(full, 0.0)
     assert buildup_starts(full, np.where(np.isfinite(full), 1.0, 0.0), 2, tol_m=1e-6) == []
+
+
+def test_repeated_and_self_pairs_do_not_change_the_answer_and_bad_indices_are_errors():
+    flippable = complete(4)[1:]  # K4 minus an edge
+    noisy = np.vstack([flippable, flippable[:2], [[2, 2]], flippable[:, ::-1]])
+    for seed in range(20):  # a repeated pair used to add a spurious stress for some seeds
+        assert not generically_globally_rigid(noisy, 4, 2, seed=seed)
+    with pytest.raises(ValueError, match="anchor indices"):
+        generically_globally_rigid(np.array([[0, 1], [1, -1]]), 4, 2)
+    with pytest.raises(ValueError, match="anchor indices"):
+        generically_globally_rigid(np.array([[0, 5]]), 3, 2)

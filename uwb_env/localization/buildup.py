@@ -54,7 +54,9 @@ def buildup_starts(full: np.ndarray, weight: np.ndarray, dim: int, tol_m: float,
             x, cost = _extend(x, cost, full[k, nb], weight[k, nb], nb, k, dim, robust_c)
             placed.append(k)
             x, cost = _prune(x, cost, placed, beam, tol_m)
-        starts.extend(x[i] for i in np.argsort(cost, kind="stable")[:keep])
+            if len(x) == 0:  # every placement non-finite (degenerate ranges): no start from this seed
+                break
+        starts.extend(x[i] for i in np.argsort(cost, kind="stable")[:keep] if np.isfinite(x[i]).all())
     return starts
 
 
@@ -212,17 +214,42 @@ def _refine(p, ref, ranges, weight, robust_c):
 
 
 def _prune(x, cost, placed, beam, tol_m):
-    """The ``beam`` lowest-misfit states, one per shape (states within tol_m of a kept one)."""
+    """The ``beam`` lowest-misfit states, one per shape (a state within tol_m of a kept one is
+    a duplicate: robust placements from many neighbour pairs collapse onto few points, so the
+    duplicates are dropped before the beam is cut, over every finite state)."""
     order = np.argsort(cost, kind="stable")
-    order = order[np.isfinite(cost[order])][: 4 * beam]  # duplicates beyond these cannot matter much
+    order = order[np.isfinite(cost[order])]
     if len(order) == 0:
-        return x[:1], cost[:1]
-    pts = x[order][:, placed]
-    same = (np.abs(pts[:, None] - pts[None]).max(axis=(2, 3)) <= tol_m)
-    kept = []
-    for a in range(len(order)):
-        if not any(same[a, b] for b in kept):
-            kept.append(a)
-            if len(kept) == beam:
+        return x[:0], cost[:0]
+    pts = np.ascontiguousarray(x[order][:, placed])
+    kept = order[_distinct_prefix(pts, beam, tol_m)]
+    return x[kept], cost[kept]
+
+
+@njit(cache=True)
+def _distinct_prefix(pts, beam, tol_m):
+    """Indices of the first ``beam`` states (in order) that differ from every earlier kept one
+    by more than tol_m in some coordinate."""
+    kept = np.empty(min(beam, pts.shape[0]), dtype=np.int64)
+    count = 0
+    for i in range(pts.shape[0]):
+        duplicate = False
+        for k in range(count):
+            j = kept[k]
+            far = False
+            for a in range(pts.shape[1]):
+                for b in range(pts.shape[2]):
+                    if abs(pts[i, a, b] - pts[j, a, b]) > tol_m:
+                        far = True
+                        break
+                if far:
+                    break
+            if not far:
+                duplicate = True
                 break
-    return x[order[kept]], cost[order[kept]]
+        if not duplicate:
+            kept[count] = i
+            count += 1
+            if count == len(kept):
+                break
+    return kept[:count]

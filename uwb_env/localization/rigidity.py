@@ -19,8 +19,12 @@ def generically_globally_rigid(pairs: np.ndarray, n: int, dim: int, seed: int = 
     """True when the graph (``pairs``: (m, 2) anchor indices) has one realization in ``dim``
     dimensions up to rotation, translation and reflection, for generic anchor positions."""
     pairs = np.asarray(pairs, dtype=int).reshape(-1, 2)
+    if len(pairs) and (pairs.min() < 0 or pairs.max() >= n):
+        raise ValueError(f"pairs: anchor indices must lie in [0, {n}), got {pairs.min()}..{pairs.max()}")
+    # one row per unordered pair (a repeated pair would add a spurious stress)
+    pairs = np.unique(np.sort(pairs[pairs[:, 0] != pairs[:, 1]], axis=1), axis=0)
     if n <= dim + 1:  # a simplex: unique iff every pair is measured
-        return len({(min(i, j), max(i, j)) for i, j in pairs if i != j}) == n * (n - 1) // 2
+        return len(pairs) == n * (n - 1) // 2
     rng = np.random.default_rng(seed)
     p = rng.standard_normal((n, dim))
     i, j = pairs[:, 0], pairs[:, 1]
@@ -45,4 +49,5 @@ def generically_globally_rigid(pairs: np.ndarray, n: int, dim: int, seed: int = 
     np.add.at(omega, (i, i), w)
     np.add.at(omega, (j, j), w)
     ev = np.abs(np.linalg.eigvalsh(omega))
-    return int((ev > 1e-8 * ev.max()).sum()) == n - dim - 1
+    # threshold relative to the stress's own size (the eigenvalues scale with it)
+    return int((ev > 1e-8 * max(ev.max(), np.linalg.norm(w))).sum()) == n - dim - 1
