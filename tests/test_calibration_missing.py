@@ -6,7 +6,7 @@ fit, nor a fold that the fit test lets through as ok."""
 import numpy as np
 import pytest
 
-from uwb_env.localization import aligned_errors, calibrate_anchors
+from uwb_env.localization import LocalizationError, aligned_errors, calibrate_anchors
 
 CASES = [{"x": [[1.267, 18.011], [19.726, 10.228], [4.506, 10.876], [13.925, 9.644], [7.051, 4.956], [5.937, 0.996], [5.101, 19.063], [0.162, 14.549]], "missing": [[0, 6], [1, 5], [1, 6], [2, 4], [2, 5], [2, 7], [3, 7], [4, 6], [5, 7]]}, {"x": [[1.016, 0.88], [3.056, 12.113], [15.627, 9.597], [12.275, 12.851], [0.386, 4.926], [19.955, 6.616], [18.933, 9.846], [4.451, 0.048]], "missing": [[0, 1], [0, 7], [1, 2], [1, 4], [3, 4], [3, 5], [4, 5], [5, 7]]}, {"x": [[19.495, 13.039], [4.367, 12.553], [15.355, 8.463], [3.356, 7.034], [15.631, 4.154], [0.228, 17.581], [19.435, 17.378], [16.024, 14.593]], "missing": [[0, 5], [1, 5], [1, 6], [1, 7], [2, 5], [2, 6], [3, 5], [3, 7], [6, 7]]}]  # noqa: E501 (recorded cases)
 
@@ -45,3 +45,17 @@ def test_a_graph_with_a_flip_is_reported_ambiguous(case):
     res = calibrate_anchors(d, range_std_m=0.05)
     assert res.cost < 1e-6  # a shape that fits exactly: the truth or its flip
     assert res.ambiguous
+
+
+@pytest.mark.parametrize("value", [0.0, 3.0])
+def test_degenerate_ranges_with_a_pair_missing_give_a_result_or_a_typed_error(value):
+    # all anchors coincident (every range 0) or an impossible equilateral set in 2D, one pair
+    # missing: the MDS start used to raise numpy's LinAlgError (the shortest-path fill read the
+    # zero ranges as missing edges and filled the matrix with inf)
+    d = np.full((5, 5), value)
+    d[0, 3] = d[3, 0] = np.nan
+    try:
+        res = calibrate_anchors(d)
+    except LocalizationError:
+        return
+    assert np.isfinite(res.positions).all()
