@@ -22,6 +22,11 @@ from numba import njit
 SEED_TRIANGLES = 3
 BEAM = 8
 KEEP = 4  # starts handed on per seed: the lowest final misfits
+# Placements whose misfits tie with the best (within the fit test's one-dof chi-square margin at
+# 1e-3) all stay, up to these caps: noise-free, every mirror choice of an anchor with exactly dim
+# links costs 0, and a stable sort would keep an arbitrary ``beam`` of them.
+TIE_CHI2 = 10.83
+MAX_BEAM, MAX_KEEP = 32, 12
 REFINE_ITERATIONS = 6
 
 
@@ -53,10 +58,11 @@ def buildup_starts(full: np.ndarray, weight: np.ndarray, dim: int, tol_m: float,
             nb = [j for j in placed if linked[k, j]]
             x, cost = _extend(x, cost, full[k, nb], weight[k, nb], nb, k, dim, robust_c)
             placed.append(k)
-            x, cost = _prune(x, cost, placed, beam, tol_m)
+            x, cost = _prune(x, cost, placed, _with_ties(cost, beam, MAX_BEAM), tol_m)
             if len(x) == 0:  # every placement non-finite (degenerate ranges): no start from this seed
                 break
-        starts.extend(x[i] for i in np.argsort(cost, kind="stable")[:keep] if np.isfinite(x[i]).all())
+        best = np.argsort(cost, kind="stable")[:_with_ties(cost, keep, MAX_KEEP)]
+        starts.extend(x[i] for i in best if np.isfinite(x[i]).all())
     return starts
 
 
@@ -211,6 +217,14 @@ def _refine(p, ref, ranges, weight, robust_c):
                 break
             p[s] -= np.linalg.solve(h, g)
     return p
+
+
+def _with_ties(cost, count, cap):
+    """``count``, or more (up to ``cap``) when more states tie with the lowest misfit."""
+    finite = cost[np.isfinite(cost)]
+    if len(finite) == 0:
+        return count
+    return max(count, min(cap, int((finite <= finite.min() + TIE_CHI2).sum())))
 
 
 def _prune(x, cost, placed, beam, tol_m):
