@@ -18,6 +18,10 @@ from __future__ import annotations
 
 import numpy as np
 from numba import njit
+from scipy.special import chdtri
+
+from uwb_env.localization._lm_kernel import LOSS_CODES, _weight
+from uwb_env.localization.robust import robust_cost
 
 SEED_TRIANGLES = 3
 BEAM = 8
@@ -25,7 +29,7 @@ KEEP = 4  # starts handed on per seed: the lowest final misfits
 # Placements whose misfits tie with the best (within the fit test's one-dof chi-square margin at
 # 1e-3) all stay, up to these caps: noise-free, every mirror choice of an anchor with exactly dim
 # links costs 0, and a stable sort would keep an arbitrary ``beam`` of them.
-TIE_CHI2 = 10.83
+TIE_CHI2 = float(chdtri(1, 1e-3))
 MAX_BEAM, MAX_KEEP = 32, 12
 REFINE_ITERATIONS = 6
 
@@ -121,25 +125,23 @@ def _extend(x, cost, ranges, weight, nb, k, dim, robust_c=None):
         m = min(len(nb), 5)
         bases = [(a, b) for a in range(m) for b in range(a + 1, m)]
     cands = np.concatenate([_intersections(ref, ranges, dim, base) for base in bases], axis=1)  # (S, 2B, dim)
+    loss, c_scale = ("linear", 1.0) if robust_c is None else ("nlos", robust_c)
     c = cands.shape[1]
     ref2 = np.repeat(ref, c, axis=0)
     p = cands.reshape(c * s, dim)
     if len(nb) > dim:
-        p = _refine(p, ref2, ranges, weight, -1.0 if robust_c is None else robust_c)
-    resid = np.linalg.norm(ref2 - p[:, None], axis=-1) - ranges
-    z2 = weight * resid * resid
-    if robust_c is not None:
-        # residual model - measured < 0: measured longer, an NLOS candidate (robust.py's nlos loss)
-        z2 = np.where(resid < 0, robust_c**2 * np.log1p(z2 / robust_c**2), z2)
-    new_cost = np.repeat(cost, c) + z2.sum(1)
+        p = _refine(p, ref2, ranges, weight, LOSS_CODES[loss], c_scale)
+    # whitened residuals model - measured: < 0 is a range measured longer (an NLOS candidate)
+    z = (np.linalg.norm(ref2 - p[:, None], axis=-1) - ranges) * np.sqrt(weight)
+    new_cost = np.repeat(cost, c) + 2.0 * robust_cost(z, loss, c_scale, axis=-1)  # chi-square units
     new_x = np.repeat(x, c, axis=0)
     new_x[:, k] = p
     return new_x, new_cost
 
 
 def _intersections(ref, ranges, dim, base):
-    """Per state, the two points at the measured ranges from the two (2D) or three (3D)
-    best-spread neighbours: mirror images across their line (plane). Circles that miss each
+    """Per state, the two points at the measured ranges from the neighbours ``base`` (and in
+    3D a third, off their line): mirror images across their line (plane). Circles that miss each
     other (noise) give their closest approach twice."""
     a, b = base
     if dim == 2:
@@ -189,14 +191,14 @@ def _third_reference(pts, a, b):
 
 
 @njit(cache=True)
-def _refine(p, ref, ranges, weight, robust_c):
-    """A few weighted Gauss-Newton steps of each point on its ranges (all states at once);
-    a singular normal matrix leaves the point where it is. robust_c > 0: ranges measured
-    longer than the point says (NLOS) are down-weighted (one-sided Cauchy, scale robust_c)."""
+def _refine(p, ref, ranges, weight, code, c):
+    """A few weighted Gauss-Newton steps of each point on its ranges (all states at once), each
+    range's weight times the IRLS weight of loss ``code`` (``_lm_kernel.LOSS_CODES``, scale c);
+    a singular normal matrix leaves the point where it is."""
     s_count, m, dim = ref.shape
     p = p.copy()
     for s in range(s_count):
-        for _ in range(REFINE_ITERATIONS if robust_c <= 0 else 3 * REFINE_ITERATIONS):
+        for _ in range(REFINE_ITERATIONS if code == 0 else 3 * REFINE_ITERATIONS):
             h = np.zeros((dim, dim))
             g = np.zeros(dim)
             for j in range(m):
@@ -205,9 +207,7 @@ def _refine(p, ref, ranges, weight, robust_c):
                     d2 += (p[s, a] - ref[s, j, a]) ** 2
                 dist = max(np.sqrt(d2), 1e-12)
                 r = dist - ranges[j]
-                w = weight[j]
-                if robust_c > 0 and r < 0:
-                    w = w / (1.0 + w * r * r / robust_c**2)
+                w = weight[j] * _weight(r * np.sqrt(weight[j]), code, c)
                 for a in range(dim):
                     ja = (p[s, a] - ref[s, j, a]) / dist
                     g[a] += w * ja * r

@@ -776,10 +776,9 @@ BUILDUP_ROBUST_MAX_N = 12
 def _buildup_starts(problem: _Problem) -> list[tuple[str, np.ndarray]]:
     """Sequential placements branching over each anchor's mirror choice (``buildup``); under
     the ``nlos`` loss each placement down-weights ranges measured longer than it (NLOS)."""
-    n, pairs = problem.n, problem.pairs
+    n = problem.n
     robust_c = problem.f_scale if problem.loss == "nlos" else None
-    weight = np.zeros((n, n))
-    weight[pairs[:, 0], pairs[:, 1]] = weight[pairs[:, 1], pairs[:, 0]] = problem.inv_var
+    weight = np.nan_to_num(_full_matrix(problem.pairs, problem.inv_var, n))  # 0 where missing
     tol = 3.0 * float(np.sqrt(problem.var.max()))
     return [("buildup", x) for x in buildup_starts(problem.full, weight, problem.dim, tol, robust_c=robust_c)]
 
