@@ -257,20 +257,16 @@ def calibrate_anchors(
         # truth's, or the graph may admit a second shape (flip) that fits as well, which only
         # another basin reveals (then ``ambiguous``). More basins: sequential placements that
         # branch over each anchor's mirror choice (``buildup``), and SMACOF from seeded random
-        # shapes. (On complete graphs with NLOS outliers the placements found no better basin.)
-        more = problem.solve_starts(refs, _buildup_starts(problem) + _random_smacof_starts(problem, RANDOM_STARTS))
-        if more:
-            candidates += more
-            best, ambiguous = problem.select(candidates, prior)
+        # shapes.
+        best, ambiguous = problem.add_starts(
+            refs, candidates, _buildup_starts(problem) + _random_smacof_starts(problem, RANDOM_STARTS), prior, best,
+            ambiguous)
     if prior is None and not sparse and not best.fit_ok and loss == "nlos" and dim == 2 and n <= BUILDUP_ROBUST_MAX_N:
         # NLOS links: every start that embeds all ranges at once is pulled by the long ones, and
         # the robust solve from there keeps that basin. Placements that fit each anchor to its
         # shortest-consistent ranges (several neighbour pairs, one-sided weights) start other
-        # basins. 30 % NLOS links, N = 8: rounds at >= 10x the bound reported ok 2.3 % -> 0.9 %.
-        more = problem.solve_starts(refs, _buildup_starts(problem))
-        if more:
-            candidates += more
-            best, ambiguous = problem.select(candidates, prior)
+        # basins. 30 % NLOS links, N = 8: rounds at >= 10x the bound 5.6 % -> 4.6 %.
+        best, ambiguous = problem.add_starts(refs, candidates, _buildup_starts(problem), prior, best, ambiguous)
     tried = len(candidates)
     if not best.fit_ok:
         best, extra = problem.unfold(refs, best)
@@ -431,6 +427,15 @@ class _Problem:
         # the prior decides only if it is clearly closer to one shape than to the others
         ambiguous = any(_shape_distance(c.x, prior) < 2.0 * _shape_distance(pick.x, prior) for c in others)
         return pick, ambiguous
+
+    def add_starts(self, refs, candidates: list[_Candidate], starts, prior, best, ambiguous):
+        """Solve ``starts``, add them to ``candidates`` (in place) and select again; the current
+        (best, ambiguous) when none could be solved."""
+        more = self.solve_starts(refs, starts)
+        if not more:
+            return best, ambiguous
+        candidates += more
+        return self.select(candidates, prior)
 
     def ties_on_kept_pairs(self, refs, best: _Candidate, candidates: list[_Candidate]) -> bool:
         """Whether another candidate's shape, re-solved on the pairs ``best`` kept, fits them
@@ -768,7 +773,7 @@ def _cold_starts(problem: _Problem, initializer: str) -> list[tuple[str, np.ndar
 
 RANDOM_STARTS = 12
 # Robust build-up placements try every pair of neighbours per anchor: ~45 ms at N = 8, ~1.2 s at
-# N = 64. Measured to help at N = 8 (30 % NLOS: 5.6 -> 4.7 % of rounds at 10x); at N = 16 the
+# N = 64. Measured to help at N = 8 (30 % NLOS: 5.6 -> 4.6 % of rounds at 10x); at N = 16 the
 # plain starts already leave none at 10x.
 BUILDUP_ROBUST_MAX_N = 12
 
