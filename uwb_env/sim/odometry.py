@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from uwb_env.config import OdometryConfig
+from uwb_env.sim._odometry_kernel import drift_step
 from uwb_env.sim.ranging import upper_tail_threshold
 
 
@@ -46,6 +47,7 @@ class OdometryModel:
         self._sum_a = np.zeros(n)
         self._sum_b = np.zeros(n, dtype=complex)
         self._sum_c = np.zeros(n)
+        self._ones = np.ones(n)
 
     _ACCUMULATORS = ("heading_var_rad2", "_dist", "_steps", "_net", "_sum_a", "_sum_b", "_sum_c")
 
@@ -74,16 +76,11 @@ class OdometryModel:
                 self.slip_left_s = np.where(start & ~slipping, cfg.slip_duration_s, self.slip_left_s)
                 self._any_slip = bool((self.slip_left_s > 0.0).any())
                 gain = np.where(slipping, cfg.slip_noise_multiplier, 1.0)
-        d = (delta if dim == 2 else np.ascontiguousarray(delta[:, :2])).view(np.complex128)[:, 0]
-        dist = np.abs(d)
-        # yaw error random-walks with distance travelled and with turning
-        yaw_var = self._yaw_var_per_m * dist + self._yaw_var_per_rad * turn_rad
-        yaw_step = np.sqrt(yaw_var) * noise[2 * n : 3 * n]
-        self.yaw_error_rad = self.yaw_error_rad + (yaw_step if gain is None else gain * yaw_step)
-        white = (cfg.noise_std_m_per_sqrt_m if gain is None else gain * cfg.noise_std_m_per_sqrt_m) * np.sqrt(dist)
-        est = self.scale * np.exp(1j * self.yaw_error_rad) * d + white * noise[: 2 * n].view(np.complex128)
-        self._accumulate(est, yaw_var)
-        planar = est.view(np.float64).reshape(n, 2)
+        planar = np.empty((n, 2))
+        drift_step(delta, turn_rad, noise, self.scale, self._ones if gain is None else gain, self.yaw_error_rad,
+                   self._yaw_var_per_m, self._yaw_var_per_rad, cfg.noise_std_m_per_sqrt_m, self.expected_slip_gain2,
+                   self.heading_var_rad2, self._net, self._sum_a, self._sum_b, self._sum_c, self._dist, self._steps,
+                   planar)
         if dim == 2:
             return planar
         out = delta.copy()  # the vertical part is integrated without error

@@ -11,6 +11,7 @@ from importlib import resources
 from pathlib import Path
 
 import numpy as np
+from numba import njit
 from scipy.special import ndtri
 
 from uwb_env.config import RangingConfig
@@ -91,16 +92,16 @@ class RangeModel:
 
     def measure(self, true_m: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Raw measured ranges for true distances ``true_m`` (any shape); NaN where lost."""
-        shape = np.shape(true_m)
+        true = np.asarray(true_m, dtype=float)
         # One Gaussian block: row 0 is the noise, rows 1-2 decide NLOS and dropout through
-        # upper-tail thresholds (P(z > q) = p); one generator call keeps the hot loop fast.
-        z = rng.standard_normal((3,) + shape)
-        out = self.slope * true_m + self.offset_m + self.noise_std_m * z[0]
-        nlos = z[1] > self._q_nlos
-        if nlos.any():
-            out[nlos] += rng.exponential(self._nlos_mean, int(nlos.sum()))
-        out[(z[2] > self._q_drop) | (true_m > self._max_range)] = np.nan
-        return out
+        # upper-tail thresholds (P(z > q) = p); one generator call and one compiled pass.
+        z = rng.standard_normal((3,) + true.shape)
+        out, nlos, n_nlos = _draw_ranges(true.reshape(-1), z.reshape(3, -1), self.slope, self.offset_m,
+                                         self.noise_std_m, self._q_nlos)
+        if n_nlos:
+            out[nlos] += rng.exponential(self._nlos_mean, n_nlos)
+        _drop(out, true.reshape(-1), z.reshape(3, -1), self._q_drop, self._max_range)
+        return out.reshape(true.shape)
 
     def correct(self, measured_m: np.ndarray) -> np.ndarray:
         """Undo the known slope/offset: an estimate of the true distance."""
@@ -119,3 +120,26 @@ class RangeModel:
         if not self.config.correct_bias:
             return np.asarray(std_m, dtype=float)
         return np.asarray(std_m, dtype=float) / self.slope
+
+
+@njit(cache=True)
+def _draw_ranges(true, z, slope, offset, noise_std, q_nlos):
+    """slope * true + offset + noise, and where the NLOS normal exceeds its threshold."""
+    n = true.shape[0]
+    out = np.empty(n)
+    nlos = np.zeros(n, dtype=np.bool_)
+    count = 0
+    for i in range(n):
+        out[i] = slope * true[i] + offset + noise_std * z[0, i]
+        if z[1, i] > q_nlos:
+            nlos[i] = True
+            count += 1
+    return out, nlos, count
+
+
+@njit(cache=True)
+def _drop(out, true, z, q_drop, max_range):
+    """Lost readings (dropout, beyond the maximum range) become NaN."""
+    for i in range(out.shape[0]):
+        if z[2, i] > q_drop or true[i] > max_range:
+            out[i] = np.nan

@@ -1,0 +1,70 @@
+"""Compiled step of :class:`~uwb_env.sim.odometry.OdometryModel` (the ``distance`` model).
+
+One loop per robot instead of ~25 numpy calls. The complex products and magnitudes are
+written out as numpy's own loops compute them on this CPU class (products with fused
+multiply-adds, magnitudes as ``big * sqrt(1 + (small / big)^2)``), so a seed gives the same
+trajectory to the last bit as the numpy version it replaced (tested on recorded values).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, types
+from numba.extending import intrinsic
+
+
+@intrinsic
+def fma(typingctx, a, b, c):
+    """a * b + c with one rounding (LLVM's fma intrinsic)."""
+    sig = types.float64(types.float64, types.float64, types.float64)
+
+    def codegen(context, builder, signature, args):
+        return builder.fma(*args)
+
+    return sig, codegen
+
+
+@njit(cache=True)
+def magnitude(re, im):
+    """|re + i im| as numpy's complex absolute computes it."""
+    x, y = abs(re), abs(im)
+    big, small = max(x, y), min(x, y)
+    if big == 0.0:
+        return 0.0
+    r = small / big
+    return big * math.sqrt(fma(r, r, 1.0))
+
+
+@njit(cache=True)
+def drift_step(delta, turn, noise, scale, gain, yaw_error, yaw_var_per_m, yaw_var_per_rad, noise_std, slip_gain2,
+               heading_var, net, sum_a, sum_b, sum_c, dist_sum, steps, out):
+    """Believed planar displacement of every robot for its true ``delta`` (n, >= 2) and
+    ``turn`` (n,), written to ``out`` (n, 2); the yaw errors and the drift accumulators are
+    updated in place. noise: 3n normals ([0, 2n) planar white noise, [2n, 3n) yaw);
+    gain: per-robot noise multiplier (slips)."""
+    n = delta.shape[0]
+    for i in range(n):
+        dx, dy = delta[i, 0], delta[i, 1]
+        dist = magnitude(dx, dy)
+        yaw_var = yaw_var_per_m * dist + yaw_var_per_rad * turn[i]
+        yaw = yaw_error[i] + gain[i] * (math.sqrt(yaw_var) * noise[2 * n + i])
+        yaw_error[i] = yaw
+        white = gain[i] * noise_std * math.sqrt(dist)
+        # scale * e^{i yaw} * d + white * (complex noise)
+        ar, ai = scale[i] * math.cos(yaw), scale[i] * math.sin(yaw)
+        er = fma(ar, dx, -(ai * dy)) + white * noise[2 * i]
+        ei = fma(ar, dy, ai * dx) + white * noise[2 * i + 1]
+        out[i, 0] = er
+        out[i, 1] = ei
+        # what the robot can predict of its own drift (OdometryModel._accumulate)
+        dv = slip_gain2 * yaw_var
+        heading_var[i] += dv
+        pr, pi = net[i].real, net[i].imag
+        sum_a[i] += dv
+        sum_b[i] = complex(sum_b[i].real + dv * pr, sum_b[i].imag + dv * pi)
+        sum_c[i] += dv * (pr * pr + pi * pi)
+        net[i] = complex(pr + er, pi + ei)
+        dist_sum[i] += magnitude(er, ei)
+        steps[i] += 1.0
