@@ -1,3 +1,4 @@
+# ruff: noqa: E501  (recorded values, one list per line)
 """The compiled motion, odometry and ranging loops reproduce the numpy implementation they
 replaced (25a3f64): the values below were recorded from it for fixed seeds. Same seed, same
 trajectory, so every committed episode result stays valid; a changed formula, draw order or
