@@ -15,12 +15,14 @@ drifts hit all alike:
 - ``sb3_ppo_steps_per_s_default`` (PPO on ``uwb-env train``'s default path: the batched copies,
   with that path's hyperparameters) and ``sb3_ppo_over_dummy8`` (over DummyVecEnv(8) of the
   Gymnasium scheduler env with its hyperparameters, the previous default);
-- ``--before REV``: the batched figure at B = 1024 of another revision, measured in the same
-  run (a temporary worktree, a subprocess of this interpreter) -> ``batched_b1024_over_before``;
+- ``--before REV [REV ...]``: the batched figure at B = 1024 and the single env's ``fixed:10``
+  rate of other revisions beside this tree's, in subprocesses on temporary worktrees interleaved
+  with one of this tree (rev, current, rev, current, ...) -> ``batched_b1024_over_before`` (the
+  first revision) and ``batched_b1024_over_<rev>`` / ``single_fixed10_over_<rev>`` for each;
 - ``--fixed10-before REV``: the ``fixed:10`` / no-calibration ratio of another revision, the same
   way -> ``batched_fixed10_over_nocal_b1024_before``.
 
-    python benchmarks/bench_vec.py [--quick] [--before 80cfb30] [--fixed10-before e8d8761]
+    python benchmarks/bench_vec.py [--quick] [--before 80cfb30 25a3f64] [--fixed10-before e8d8761]
 
 Writes benchmarks/results/bench_vec.json (``_quick`` with --quick). Needs the ``bench`` extra
 (vmas, mpe2) and ``train`` (SB3) for every figure; a missing one is reported as missing.
@@ -139,31 +141,51 @@ def ppo_rate(env: str, vec_env: str, steps: int) -> float | None:
     return model.num_timesteps / (time.perf_counter() - t0)
 
 
-def before(rev: str, seconds: float, fixed10: bool = False) -> dict:
-    """Batched B = 1024 copy-steps/s of another revision without calibrations and, with
-    ``fixed10``, with a calibration every 10 steps (alternating blocks in a subprocess on a
-    temporary worktree)."""
+def _tree_rates(tree: Path, seconds: float, fixed10: bool) -> dict:
+    """Rates of the code in ``tree`` in a subprocess (this file's steppers on that tree's package):
+    batched B = 1024 without calibrations, single env with ``fixed:10``, and with ``fixed10``
+    the batched ``fixed:10`` copies."""
+    steppers = "{'nocal': b.batched_stepper(1024), 'single': b.single_fixed10_stepper()"
+    steppers += ", 'fixed10': b.batched_stepper(1024, 10)}" if fixed10 else "}"
+    code = (f"import sys, json; sys.path.insert(0, {str(Path(__file__).parent)!r}); import bench_vec as b; "
+            f"print(json.dumps(b.alternating({steppers}, {{'nocal': 1024, 'fixed10': 1024, 'single': 1}}, "
+            f"{seconds}, 3)))")
+    out = subprocess.run([sys.executable, "-c", code], env=dict(os.environ, PYTHONPATH=str(tree)), check=True,
+                         capture_output=True, text=True, cwd=tree)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def before(revs: list[str], seconds: float, fixed10: bool = False, blocks: int = 2) -> dict:
+    """Rates of other revisions beside this tree's, each in a subprocess on a temporary worktree,
+    the subprocesses interleaved (rev 1, this tree, rev 2, this tree, ...) ``blocks`` times so that
+    the VM's drift hits all alike; the best block of each. Returns {rev or "current": rates}."""
     root = Path(__file__).resolve().parents[1]
+    best: dict = {}
     with tempfile.TemporaryDirectory() as tmp:
-        tree = Path(tmp) / "tree"
-        subprocess.run(["git", "-C", str(root), "worktree", "add", "--detach", str(tree), rev], check=True,
-                       capture_output=True)
+        trees = {}
         try:
-            steppers = "{'nocal': b.batched_stepper(1024)"
-            steppers += ", 'fixed10': b.batched_stepper(1024, 10)}" if fixed10 else "}"
-            code = (f"import sys, json; sys.path.insert(0, {str(Path(__file__).parent)!r}); import bench_vec as b; "
-                    f"print(json.dumps(b.alternating({steppers}, {{'nocal': 1024, 'fixed10': 1024}}, {seconds}, 3)))")
-            out = subprocess.run([sys.executable, "-c", code], env=dict(os.environ, PYTHONPATH=str(tree)),
-                                 check=True, capture_output=True, text=True, cwd=tree)
-            return json.loads(out.stdout.strip().splitlines()[-1])
+            for rev in revs:
+                trees[rev] = Path(tmp) / rev
+                subprocess.run(["git", "-C", str(root), "worktree", "add", "--detach", str(trees[rev]), rev],
+                               check=True, capture_output=True)
+            for _ in range(blocks):
+                for rev in revs:
+                    for name, tree in ((rev, trees[rev]), ("current", root)):
+                        rates = _tree_rates(tree, seconds, fixed10)
+                        best[name] = {k: max(v, best.get(name, {}).get(k, 0.0)) for k, v in rates.items()}
         finally:
-            subprocess.run(["git", "-C", str(root), "worktree", "remove", "--force", str(tree)], capture_output=True)
+            for tree in trees.values():
+                subprocess.run(["git", "-C", str(root), "worktree", "remove", "--force", str(tree)],
+                               capture_output=True)
+    return best
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true")
-    parser.add_argument("--before", default=None, help="a git revision whose batched B=1024 rate is set beside")
+    parser.add_argument("--before", nargs="+", default=None,
+                        help="git revisions whose batched B=1024 and single fixed:10 rates are set beside this "
+                             "tree's (interleaved subprocesses); the first gives batched_b1024_over_before")
     parser.add_argument("--fixed10-before", default=None,
                         help="a git revision whose batched fixed:10 / no-calibration ratio at B=1024 is set beside")
     args = parser.parse_args()
@@ -215,13 +237,19 @@ def main() -> None:
         fig["sb3_ppo_steps_per_s_dummy8"] = dummy
         fig["sb3_ppo_over_dummy8"] = default / dummy
     if args.before:
-        fig["before_revision"] = args.before
-        fig["batched_copy_steps_per_s_b1024_before"] = before(args.before, seconds)["nocal"]
-        fig["batched_b1024_over_before"] = fig["batched_copy_steps_per_s_b1024"] / fig[
-            "batched_copy_steps_per_s_b1024_before"]
+        # the first revision gives the issue's keys; every revision its own, all measured in one
+        # interleaved series beside this tree (rates of the same run, not of the blocks above)
+        cmp = before(args.before, seconds)
+        first = args.before[0]
+        fig["before_revision"] = first
+        fig["batched_copy_steps_per_s_b1024_before"] = cmp[first]["nocal"]
+        fig["batched_b1024_over_before"] = cmp["current"]["nocal"] / cmp[first]["nocal"]
+        for rev in args.before:
+            fig[f"batched_b1024_over_{rev}"] = cmp["current"]["nocal"] / cmp[rev]["nocal"]
+            fig[f"single_fixed10_over_{rev}"] = cmp["current"]["single"] / cmp[rev]["single"]
 
     if args.fixed10_before:
-        rates_before = before(args.fixed10_before, seconds, fixed10=True)
+        rates_before = before([args.fixed10_before], seconds, fixed10=True, blocks=1)[args.fixed10_before]
         fig["fixed10_before_revision"] = args.fixed10_before
         fig["batched_fixed10_over_nocal_b1024_before"] = rates_before["fixed10"] / rates_before["nocal"]
 
