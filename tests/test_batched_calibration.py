@@ -85,3 +85,47 @@ def test_one_compiled_call_solves_each_team_as_alone_in_its_own_gauge():
     np.testing.assert_array_equal(sub.positions, solved.positions[kept])
     solved.hand_back(kept[:3])
     assert all(solved.result(k) is None for k in kept[:3])
+
+
+def test_single_env_rounds_take_the_compiled_solve_and_get_the_full_solvers_answer(monkeypatch):
+    # The single env solves a usual later round with the batched env's compiled solve (a team
+    # of one) and hands the rest to the full solver: every compiled answer must be the one the
+    # full solver gives for the same round, prior and weights.
+    import uwb_env.system as system_module
+    from uwb_env.config import EnvConfig
+    from uwb_env.system import LocalizationSystem
+
+    compiled, full_calls, checked = [0], [0], [0]
+    original_compiled = LocalizationSystem._later_calibration_compiled
+    original_full = system_module.calibrate_anchors
+
+    def counting_full(*args, **kwargs):
+        full_calls[0] += 1
+        return original_full(*args, **kwargs)
+
+    def checked_compiled(self, matrix, est_mid, prior_std):
+        result = original_compiled(self, matrix, est_mid, prior_std)
+        if result is not None:
+            compiled[0] += 1
+            solver = self.config.solver
+            ref = original_full(matrix, dim=2, prior=est_mid, gauge=solver.gauge, loss=solver.loss,
+                                f_scale=solver.f_scale_sigmas, range_std_m=self.range_std_m, prior_std_m=prior_std)
+            assert ref.status == result.status
+            np.testing.assert_allclose(result.positions, ref.positions, atol=1e-6)
+            np.testing.assert_allclose(result.anchor_covariance(), ref.anchor_covariance(), rtol=1e-4, atol=1e-12)
+            assert abs(result.chi2 - ref.chi2) < 1e-6 * max(1.0, ref.chi2)
+            checked[0] += 1
+        return result
+
+    monkeypatch.setattr(LocalizationSystem, "_later_calibration_compiled", checked_compiled)
+    monkeypatch.setattr(system_module, "calibrate_anchors", counting_full)
+    env = LocalizationSystem(EnvConfig())
+    env.reset(np.random.default_rng(4))
+    full_calls[0] = 0  # the first calibration (reset) always takes the full solver
+    requests = np.ones(env.n_anchors, dtype=bool)
+    for t in range(400):
+        env.step(requests if t % 10 == 0 else ~requests)
+    assert env.calibration_count >= 30
+    assert checked[0] == compiled[0] >= 25  # most rounds took the compiled solve, each checked
+    # every later calibration came from one of the two paths
+    assert compiled[0] + full_calls[0] >= env.calibration_count - 1
