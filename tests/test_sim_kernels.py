@@ -78,3 +78,18 @@ def test_odometry_3d_keeps_vertical_motion_exact():
     out = o.estimated_displacement(delta, np.zeros(3), 0.2, rng)
     np.testing.assert_array_equal(out[:, 2], delta[:, 2])
     assert np.isfinite(out).all()
+
+
+def test_drift_variance_of_every_robot_equals_that_of_each_subset():
+    # the compiled all-robots path and the numpy path for index subsets say the same
+    o = OdometryModel(OdometryConfig(slip_rate_per_s=0.5))
+    rng = np.random.default_rng(1)
+    o.reset(20, rng)
+    for t in range(120):
+        o.estimated_displacement(rng.normal(size=(20, 2)) * 0.2, abs(rng.normal(size=20)) * 0.1, 0.2, rng)
+        if t % 40 == 0:
+            o.restart_drift(np.arange(5), since=o.snapshot(np.arange(5)))
+    everyone = o.expected_drift_var_m2(2)
+    assert (everyone > 0).all()
+    np.testing.assert_array_equal(everyone, o.expected_drift_var_m2(2, np.arange(20)))
+    np.testing.assert_array_equal(everyone[3:7], o.expected_drift_var_m2(2, np.arange(3, 7)))

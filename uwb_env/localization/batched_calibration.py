@@ -16,6 +16,7 @@ outliers), a step that raises the cost, or no convergence. The caller solves tho
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 from scipy.special import chdtrc
@@ -158,6 +159,14 @@ def _mds(pairs: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return vectors[:, :, -2:][:, :, ::-1] * np.sqrt(np.maximum(top, 0.0))[:, None, :], top
 
 
+@lru_cache(maxsize=64)
+def _upper_pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``np.triu_indices(n, 1)``, built once per team size (read-only: shared by every call)."""
+    iu, ju = np.triu_indices(n, 1)
+    iu.flags.writeable = ju.flags.writeable = False
+    return iu, ju
+
+
 def symmetric_arrays(mean_m: np.ndarray, count: np.ndarray, range_std_m: float):
     """``RangeMatrix.complete_symmetric(std_m=range_std_m)`` for (K, N, N) means and counts at
     once: (complete (K,) bool, pairs (P, 2), dist (K, P), var (K, P)); a team is complete when
@@ -165,7 +174,7 @@ def symmetric_arrays(mean_m: np.ndarray, count: np.ndarray, range_std_m: float):
     from uwb_env.measurements import NEGATIVE_RANGE_TOLERANCE_M
 
     n = mean_m.shape[1]
-    iu, ju = np.triu_indices(n, 1)
+    iu, ju = _upper_pairs(n)
     ma, mb = mean_m[:, iu, ju], mean_m[:, ju, iu]
     ca, cb = count[:, iu, ju].astype(float), count[:, ju, iu].astype(float)
     with np.errstate(invalid="ignore"):

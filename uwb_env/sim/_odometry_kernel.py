@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 from numba import njit, types
 from numba.extending import intrinsic
 
@@ -67,3 +68,19 @@ def drift_step(delta, turn, noise, scale, gain, yaw_error, yaw_var_per_m, yaw_va
         net[i] = complex(pr + er, pi + ei)
         dist_sum[i] += magnitude(er, ei)
         steps[i] += 1.0
+
+
+@njit(cache=True)
+def drift_variance(net, sum_b, dist, h0, sum_a, sum_c, white_per_m, carried_base):
+    """``OdometryModel.expected_drift_var_m2`` (distance model) for every robot: white noise
+    ``white_per_m * d`` plus the heading part ``(s^2 + v0 + A) |P|^2 - 2 Re(P conj B) + C``,
+    floored at 0."""
+    n = net.shape[0]
+    out = np.empty(n)
+    for i in range(n):
+        pr, pi = net[i].real, net[i].imag
+        p2 = pr * pr + pi * pi
+        cross = pr * sum_b[i].real + pi * sum_b[i].imag
+        heading = (carried_base + h0[i] + sum_a[i]) * p2 - 2 * cross + sum_c[i]
+        out[i] = white_per_m * dist[i] + max(heading, 0.0)
+    return out

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from uwb_env.config import OdometryConfig
-from uwb_env.sim._odometry_kernel import drift_step
+from uwb_env.sim._odometry_kernel import drift_step, drift_variance
 from uwb_env.sim.ranging import upper_tail_threshold
 
 
@@ -154,6 +154,10 @@ class OdometryModel:
         cfg = self.config
         if self._uniform:
             return self._steps[robots] * dim * cfg.uniform_error_m**2 / 3.0
+        if isinstance(robots, slice) and robots == slice(None):  # every robot (the hot path): one compiled loop
+            return drift_variance(self._net, self._sum_b, self._dist, self._h0, self._sum_a, self._sum_c,
+                                  2 * cfg.noise_std_m_per_sqrt_m**2 * self.expected_slip_gain2,
+                                  cfg.scale_error_std**2)
         p, b = self._net[robots], self._sum_b[robots]
         p2 = p.real * p.real + p.imag * p.imag
         cross = p.real * b.real + p.imag * b.imag

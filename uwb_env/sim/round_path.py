@@ -35,6 +35,7 @@ class RoundPath:
         self.estimates = [np.array(estimates, dtype=float)]
         self.drifts = [drift]
         self.truths = None if truth is None else [np.array(truth, dtype=float)]
+        self._midpoint = None  # midpoint_estimates, kept until the next record
 
     def record(self, time_s: float, estimates: np.ndarray, drift: dict | None = None,
                truth: np.ndarray | None = None) -> None:
@@ -42,6 +43,7 @@ class RoundPath:
         self.times_s.append(float(time_s))
         self.estimates.append(np.array(estimates, dtype=float))
         self.drifts.append(drift)
+        self._midpoint = None
         if self.truths is not None:
             self.truths.append(np.array(truth, dtype=float))
 
@@ -61,8 +63,10 @@ class RoundPath:
         return (1.0 - w) * stack[s] + w * stack[s + 1]
 
     def midpoint_estimates(self) -> np.ndarray:
-        """(..., N, dim) the estimates at the round's midpoint."""
-        return self._at(self.estimates, np.asarray(self.midpoint_time_s))
+        """(..., N, dim) the estimates at the round's midpoint (a new array per call)."""
+        if self._midpoint is None:  # read by the solve's prior and by carry: interpolated once
+            self._midpoint = self._at(self.estimates, np.asarray(self.midpoint_time_s))
+        return self._midpoint.copy()
 
     def midpoint_truth(self) -> np.ndarray:
         if self.truths is None:
