@@ -1,56 +1,72 @@
-"""The batched stuck-tag refit (one call for every copy) agrees with the per-copy refit."""
+"""One step of tag fixing (``fix_tags_2d``, both envs): stuck tags are restarted from the closed
+form, one call for many groups equals one call per group, degenerate rows fail alone."""
 
 import numpy as np
 
-from uwb_env.localization.multilateration import refit_stuck_tags, refit_stuck_tags_2d
+from uwb_env.localization import locate_tags
+from uwb_env.localization.multilateration import TAG_NO_FIX, fix_tags_2d, track_tags_2d
 
 
-def test_batched_refit_rescues_the_same_tags_as_the_per_copy_refit():
-    rng = np.random.default_rng(0)
-    S, N, M, sigma = 64, 4, 3, 0.05
+def _scene(rng, S=64, N=4, M=3, sigma=0.05):
     anchors = rng.uniform(0, 10, (S, N, 2))
     tags = rng.uniform(2, 8, (S, M, 2))
     ranges = np.linalg.norm(tags[:, :, None] - anchors[:, None], axis=-1) + rng.normal(0, sigma, (S, M, N))
     ranges = np.maximum(ranges, 0.0)
     ranges[rng.random((S, M, N)) < 0.05] = np.nan  # dropouts
-    # tracked fixes: most right, a quarter stuck far off (a wrong minimum)
-    positions = tags + rng.normal(0, 0.02, tags.shape)
-    stuck = rng.random((S, M)) < 0.25
-    positions[stuck] += rng.uniform(-6, 6, (int(stuck.sum()), 2))
-    fitted = np.linalg.norm(positions[:, :, None] - anchors[:, None], axis=-1)
-    rms = np.sqrt(np.nanmean((fitted - ranges) ** 2, axis=-1))
-    threshold = np.full(S, 0.3)
+    return anchors, tags, ranges
 
-    batched_pos, batched_rms = positions.copy(), rms.copy()
-    refit_stuck_tags_2d(anchors, ranges, batched_pos, batched_rms, threshold, sigma**2)
-    single_pos, single_rms = positions.copy(), rms.copy()
-    for k in range(S):
-        refit_stuck_tags(anchors[k], ranges[k], single_pos[k], single_rms[k], threshold[k], sigma)
 
+def _step(anchors, previous, ranges, sigma=0.05, **kw):
+    S, N = anchors.shape[:2]
+    zeros = np.zeros((S, N))
+    return fix_tags_2d(anchors, previous, ranges, sigma**2, zeros, zeros, None, **kw)
+
+
+def test_stuck_tags_are_restarted_and_rescued_like_a_cold_solve():
+    rng = np.random.default_rng(0)
+    anchors, tags, ranges = _scene(rng)
+    # last fixes: most right, a quarter far off (a wrong minimum the tracker cannot leave)
+    previous = tags + rng.normal(0, 0.02, tags.shape)
+    stuck = rng.random(tags.shape[:2]) < 0.25
+    previous[stuck] += rng.uniform(-6, 6, (int(stuck.sum()), 2))
+    step = _step(anchors, previous, ranges)
     enough = np.isfinite(ranges).sum(-1) >= 3
-    err_b = np.linalg.norm(batched_pos - tags, axis=-1)[enough]
-    err_s = np.linalg.norm(single_pos - tags, axis=-1)[enough]
-    assert (np.linalg.norm(positions - tags, axis=-1)[enough] > 1.0).sum() > 20  # there was work to do
-    assert (err_b < 0.3).mean() >= (err_s < 0.3).mean() - 0.02  # as many tags rescued
-    assert (err_b < 0.3).mean() > 0.95
-    assert np.all(batched_rms[enough] <= rms[enough] + 1e-12)  # never worse than the tracked fix
+    err = np.linalg.norm(step.positions - tags, axis=-1)[enough]
+    assert (np.linalg.norm(previous - tags, axis=-1)[enough] > 1.0).sum() > 20  # there was work to do
+    # the tags that tracking alone leaves with a residual beyond the restart threshold are the
+    # ones restarted (a few more fit worse than the threshold with the noise and stay)
+    _, tracked_rms, _ = track_tags_2d(anchors, previous, ranges, 0.05**2)
+    left_stuck = enough & ~(tracked_rms <= 0.3)
+    assert left_stuck.sum() >= 10 and step.refit[left_stuck].mean() > 0.9
+    assert not step.refit[enough & (tracked_rms <= 0.3)].any()
+    # a restarted tag lands where an independent cold solve (the general solver from its own
+    # start) puts it
+    cold = np.stack([locate_tags(anchors[k], ranges[k], 0.05, with_covariance=False).positions
+                     for k in range(len(anchors))])
+    restarted = step.refit & enough
+    np.testing.assert_allclose(step.positions[restarted], cold[restarted], atol=0.01)
+    assert (np.linalg.norm(step.positions - tags, axis=-1)[left_stuck] < 0.3).mean() > 0.95
+    assert (err < 0.3).mean() > 0.95
+    assert (step.status[~enough] == TAG_NO_FIX).all() and np.isnan(step.rms_m[~enough]).all()
 
 
-def test_one_singular_system_does_not_fail_the_batch(monkeypatch):
-    """numpy's batched solve raises for the whole batch when one system is singular (seen in
-    the vector-env benchmark); the refit then solves row by row and leaves that tag alone."""
-    import uwb_env.localization.multilateration as mod
+def test_one_call_for_many_groups_equals_one_call_per_group():
+    rng = np.random.default_rng(1)
+    anchors, tags, ranges = _scene(rng, S=16)
+    previous = tags + rng.normal(0, 0.5, tags.shape)
+    previous[3, 1] = np.nan  # no fix yet: from the closed form
+    together = _step(anchors, previous, ranges, loss="huber")
+    for k in range(len(anchors)):
+        alone = _step(anchors[k:k + 1], previous[k:k + 1], ranges[k:k + 1], loss="huber")
+        np.testing.assert_array_equal(alone.positions[0], together.positions[k])
+        np.testing.assert_array_equal(alone.status[0], together.status[k])
+        np.testing.assert_array_equal(alone.anchor_residual_m[0], together.anchor_residual_m[k])
 
-    real_solve = np.linalg.solve
 
-    def solve(a, b):
-        if a.ndim == 3:
-            raise np.linalg.LinAlgError("Singular matrix")
-        return real_solve(a, b)
-
-    monkeypatch.setattr(mod.np.linalg, "solve", solve)
-    anchors = np.array([[[0, 0], [10, 0], [0, 10], [10, 10]]], float).repeat(2, 0)
-    ranges = np.array([[[7.07, 7.07, 7.07, 7.07]], [[5.0, 8.0, 8.0, 11.0]]])
-    pos, rms = np.full((2, 1, 2), np.nan), np.full((2, 1), np.inf)
-    mod.refit_stuck_tags_2d(anchors, ranges, pos, rms, np.zeros(2), 0.0036)
-    assert np.isfinite(pos).all()
+def test_degenerate_ranges_fail_only_their_own_tag():
+    anchors = np.array([[[0, 0], [10, 0], [0, 10], [10, 10]]], float).repeat(3, 0)
+    ranges = np.array([[[0.0, 0.0, 0.0, 0.0]], [[5.0, 8.0, 8.0, 11.0]], [[np.nan, 8.0, np.nan, 11.0]]])
+    step = _step(anchors, np.full((3, 1, 2), np.nan), ranges)
+    assert np.isfinite(step.positions[1]).all() and step.status[1, 0] != TAG_NO_FIX
+    assert step.status[2, 0] == TAG_NO_FIX and np.isnan(step.positions[2]).all()  # two ranges: no fix
+    assert not np.isnan(step.positions[0]).any() or step.status[0, 0] == TAG_NO_FIX  # a result or no fix

@@ -25,7 +25,6 @@ import numpy as np
 from uwb_env.config import EnvConfig
 from uwb_env.features import anchor_features
 from uwb_env.localization import calibrate_anchors
-from uwb_env.localization._tracking_kernel import residual_statistics
 from uwb_env.localization.alignment import rigid_align_batch
 from uwb_env.localization.batched_calibration import (
     STATUS_NONE,
@@ -36,7 +35,7 @@ from uwb_env.localization.batched_calibration import (
     symmetric_arrays,
 )
 from uwb_env.localization.errors import LocalizationError
-from uwb_env.localization.multilateration import check_mirror_2d, refit_stuck_tags_2d, track_tags_2d
+from uwb_env.localization.multilateration import TAG_NO_FIX, fix_tags_2d
 from uwb_env.measurements import RangeMatrix
 from uwb_env.sim.motion import MotionModel
 from uwb_env.sim.odometry import OdometryModel
@@ -98,6 +97,7 @@ class BatchedSystem:
         self.anchor_cov = np.zeros((B, N, 2, 2))
         self.last_calibration_rms_m = np.zeros(B)
         self.tag_fix = np.full((B, M, 2), np.nan)
+        self.tag_status = np.full((B, M), TAG_NO_FIX, dtype=np.int8)
         self.tag_velocity = np.zeros((B, M, 2))
         w = cfg.residual_window_steps
         self._tag_res = np.zeros((B, w))
@@ -322,26 +322,15 @@ class BatchedSystem:
         ranges = np.maximum(self.range_model.correct(raw), 0.0)
         anchors = self.anchors_est[rows]
         solver = self.config.solver
-        pred_var = self.predicted_anchor_var_m2()[rows]
-        cov = None
-        if solver.use_anchor_covariance:
-            drift = (pred_var - self.calibration_var_m2[rows]) / 2
-            cov = self.anchor_cov[rows] + drift[..., None, None] * np.eye(2)
-        if cold:  # every tag of every copy from the closed form, refined by the tracking kernel, at once
-            pos = np.full((len(sel), self.M, 2), np.nan)
-            rms = np.full((len(sel), self.M), np.inf)
-            refit_stuck_tags_2d(anchors, ranges, pos, rms, np.zeros(len(sel)), self.range_std_m**2, cov,
-                                solver.loss, solver.f_scale_sigmas, iterations=20)
-        else:
-            pos, rms, _ = track_tags_2d(anchors, self.tag_fix[rows], ranges, self.range_std_m**2, cov, solver.loss,
-                                        solver.f_scale_sigmas, solver.tag_iterations)
-            restart = solver.tag_restart_residual_m + 2.0 * np.sqrt(pred_var.max(axis=1))
-            # stuck tags of every copy re-solved from the closed form in one batch
-            refit_stuck_tags_2d(anchors, ranges, pos, rms, restart, self.range_std_m**2, cov, solver.loss,
-                                solver.f_scale_sigmas)
-            # as the single env: a fix the ranges reject in favour of its mirror is replaced
-            var = self.range_std_m**2 + pred_var.mean(axis=1) / 2  # per copy, as the single env's
-            pos, _, _ = check_mirror_2d(anchors, pos, ranges, var, cov, solver.loss, solver.f_scale_sigmas)
+        # the single env's tag fixing (one compiled pass: track, restart, mirror check,
+        # residual statistics); at reset (cold) every tag starts from the closed form
+        previous = np.full((len(sel), self.M, 2), np.nan) if cold else self.tag_fix[rows]
+        step = fix_tags_2d(anchors, previous, ranges, self.range_std_m**2, self.predicted_anchor_var_m2()[rows],
+                           self.calibration_var_m2[rows], self.anchor_cov[rows] if solver.use_anchor_covariance
+                           else None, solver.loss, solver.f_scale_sigmas, solver.tag_iterations,
+                           solver.tag_restart_residual_m, refit_iterations=20 if cold else 10)
+        pos = step.positions
+        self.tag_status[rows] = step.status
         ok = np.isfinite(pos).all(axis=2)
         old = self.tag_fix[rows]
         new = np.where(ok[..., None], pos, old)
@@ -350,7 +339,7 @@ class BatchedSystem:
                                            self.tag_velocity[rows])
         self.tag_fix[rows] = new
         # residual statistics per copy, of the fixes made this step (as the single env's)
-        tag_mean, anchor_mean, any_ok = residual_statistics(anchors, pos, ranges)
+        tag_mean, anchor_mean, any_ok = step.tag_residual_m, step.anchor_residual_m, step.any_fix
         w = self.config.residual_window_steps
         slot = self._hist[sel] % w
         prev = (slot - 1) % w

@@ -23,13 +23,7 @@ from uwb_env.features import anchor_features
 from uwb_env.localization import LocalizationError, calibrate_anchors, locate_tags, rigid_align
 from uwb_env.localization._tracking_kernel import residual_statistics
 from uwb_env.localization.batched_calibration import later_calibrations, symmetric_arrays
-from uwb_env.localization.multilateration import (
-    TAG_NO_FIX,
-    check_mirror_2d,
-    check_mirror_3d,
-    refit_stuck_tags,
-    track_tags_2d,
-)
+from uwb_env.localization.multilateration import TAG_NO_FIX, check_mirror_3d, fix_tags_2d
 from uwb_env.localization.relocation import relocate_anchor
 from uwb_env.measurements import pool_rounds
 from uwb_env.sim import RangeModel, World
@@ -384,48 +378,23 @@ class LocalizationSystem:
         ranges = np.maximum(world.tag_correction.correct(raw), 0.0)
         solver = self.config.solver
         pred_var = self.predicted_anchor_var_m2()
-        cov = None
-        if solver.use_anchor_covariance:  # calibration covariance + the isotropic drift part
-            cov = self.anchor_cov + ((pred_var - self.calibration_var_m2) / self.dim)[:, None, None] * self._eye
-        # Stale anchors raise every residual; only a residual well beyond what their predicted
-        # error explains suggests a fix stuck in a wrong minimum (worth a cold restart).
-        restart_m = solver.tag_restart_residual_m + 2.0 * math.sqrt(float(pred_var.max()))
         anchors = world.anchors_est
         all_fixed_before = bool(np.isfinite(self.tag_fix).all())
-        if self.dim == 2 and all_fixed_before:
-            # tracking (the hot path): the lean batched Gauss-Newton, cold restarts only if stuck
-            positions, rms, res = track_tags_2d(anchors[None], self.tag_fix[None], ranges[None], self.range_std_m**2,
-                                                None if cov is None else cov[None], solver.loss,
-                                                solver.f_scale_sigmas, solver.tag_iterations)
-            positions, rms = positions[0], rms[0]
-            refit = refit_stuck_tags(anchors, ranges, positions, rms, restart_m, self.range_std_m, cov,
-                                     solver.loss, solver.f_scale_sigmas)
-            self.tag_refits += len(refit)
+        if self.dim == 2:
+            # the batched env's tag fixing for a batch of one (one compiled pass: track, restart
+            # stuck tags from the closed form, mirror check, residual statistics)
+            step = fix_tags_2d(anchors[None], self.tag_fix[None], ranges[None], self.range_std_m**2, pred_var[None],
+                               self.calibration_var_m2[None],
+                               self.anchor_cov[None] if solver.use_anchor_covariance else None, solver.loss,
+                               solver.f_scale_sigmas, solver.tag_iterations, solver.tag_restart_residual_m)
+            positions, rms = step.positions[0], step.rms_m[0]
+            self.tag_refits += int(step.refit.sum())
+            self.tag_mirror_switches += int(step.switched.sum())
+            self.tag_status = step.status[0]
+            residuals = step.tag_residual_m, step.anchor_residual_m, step.any_fix
         else:
-            fix = locate_tags(
-                anchors, ranges, self.range_std_m, anchor_covariance=cov, loss=solver.loss,
-                f_scale=solver.f_scale_sigmas, initial=self.tag_fix, max_iterations=solver.tag_iterations,
-                with_covariance=False, restart_residual_m=restart_m,
-            )
-            positions, rms = fix.positions, np.where(fix.ok, fix.residual_rms_m, np.nan)
-        if self.n_tags:
-            var = self.range_std_m**2 + float(pred_var.mean()) / 2
-            if self.dim == 2:
-                checked, status, switched = check_mirror_2d(
-                    anchors[None], positions[None], ranges[None], var, None if cov is None else cov[None],
-                    solver.loss, solver.f_scale_sigmas)
-            else:
-                checked, status, switched = check_mirror_3d(anchors, positions, ranges, var, cov, solver.loss,
-                                                            solver.f_scale_sigmas)
-                checked, status, switched = checked[None], status[None], switched[None]
-            if switched.any():
-                positions = checked[0]
-                self.tag_mirror_switches += int(switched.sum())
-                res = np.linalg.norm(positions[:, None, :] - anchors[None], axis=-1) - ranges
-                n_ranges = np.isfinite(res).sum(axis=1)  # a tag without ranges keeps its NaN
-                mean_sq = np.nansum(res * res, axis=1) / np.maximum(n_ranges, 1)
-                rms = np.where(np.isfinite(rms) & (n_ranges > 0), np.sqrt(mean_sq), rms)
-            self.tag_status = np.where(np.isfinite(rms), status[0], TAG_NO_FIX).astype(np.int8)
+            positions, rms = self._fix_tags_3d(anchors, ranges, pred_var, solver)
+            residuals = None
         dt = world.dt_s
         all_ok = math.isfinite(_sum(rms))  # a tag without a fix has a NaN rms
         ok = np.isfinite(rms)
@@ -444,7 +413,7 @@ class LocalizationSystem:
         # Residual statistics: what a deployed system can see that its anchors went stale (the
         # batched env's kernel, for a batch of one).
         i = self._hist_index % self.config.residual_window_steps
-        tag_mean, anchor_mean, any_fix = residual_statistics(
+        tag_mean, anchor_mean, any_fix = residuals or residual_statistics(
             anchors[None], np.where(ok[:, None], positions, np.nan)[None], ranges[None])
         if any_fix[0]:
             self._tag_residual_hist[i], self._anchor_residual_hist[i] = tag_mean[0], anchor_mean[0]
@@ -452,6 +421,35 @@ class LocalizationSystem:
             self._tag_residual_hist[i] = self._tag_residual_hist[i - 1]
             self._anchor_residual_hist[i] = self._anchor_residual_hist[i - 1]
         self._hist_index += 1
+
+    def _fix_tags_3d(self, anchors, ranges, pred_var, solver) -> tuple[np.ndarray, np.ndarray]:
+        """3D tags: the general solver from the last fixes (restarting stuck ones), then the
+        mirror check across the anchors' plane. Returns positions (M, 3) and rms (M,) (NaN =
+        no fix); sets the tags' status."""
+        cov = None
+        if solver.use_anchor_covariance:  # calibration covariance + the isotropic drift part
+            cov = self.anchor_cov + ((pred_var - self.calibration_var_m2) / self.dim)[:, None, None] * self._eye
+        # Stale anchors raise every residual; only a residual well beyond what their predicted
+        # error explains suggests a fix stuck in a wrong minimum (worth a cold restart).
+        restart_m = solver.tag_restart_residual_m + 2.0 * math.sqrt(float(pred_var.max()))
+        fix = locate_tags(
+            anchors, ranges, self.range_std_m, anchor_covariance=cov, loss=solver.loss,
+            f_scale=solver.f_scale_sigmas, initial=self.tag_fix, max_iterations=solver.tag_iterations,
+            with_covariance=False, restart_residual_m=restart_m,
+        )
+        positions, rms = fix.positions, np.where(fix.ok, fix.residual_rms_m, np.nan)
+        var = self.range_std_m**2 + float(pred_var.mean()) / 2
+        checked, status, switched = check_mirror_3d(anchors, positions, ranges, var, cov, solver.loss,
+                                                    solver.f_scale_sigmas)
+        if switched.any():
+            positions = checked
+            self.tag_mirror_switches += int(switched.sum())
+            res = np.linalg.norm(positions[:, None, :] - anchors[None], axis=-1) - ranges
+            n_ranges = np.isfinite(res).sum(axis=1)  # a tag without ranges keeps its NaN
+            mean_sq = np.nansum(res * res, axis=1) / np.maximum(n_ranges, 1)
+            rms = np.where(np.isfinite(rms) & (n_ranges > 0), np.sqrt(mean_sq), rms)
+        self.tag_status = np.where(np.isfinite(rms), status, TAG_NO_FIX).astype(np.int8)
+        return positions, rms
 
     def _hold_tags(self, dt: float) -> None:
         self.tag_fix_age_s += dt

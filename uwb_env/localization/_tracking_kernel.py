@@ -120,6 +120,56 @@ def _chi2(anchors, s, ranges_row, px, py, var):
 
 
 @njit(cache=True)
+def _mirror_axis(anchors, s):
+    """Centre and e^{2i theta} (theta the principal axis' angle) of group s's anchors: the mirror
+    of p is centre + e^{2i theta} conj(p - centre)."""
+    n_count = anchors.shape[1]
+    cx = cy = 0.0
+    for k in range(n_count):
+        cx += anchors[s, k, 0]
+        cy += anchors[s, k, 1]
+    cx /= n_count
+    cy /= n_count
+    sxx = sxy = 0.0
+    for k in range(n_count):
+        dx, dy = anchors[s, k, 0] - cx, anchors[s, k, 1] - cy
+        sxx += dx * dx - dy * dy
+        sxy += 2.0 * dx * dy
+    norm = math.sqrt(sxx * sxx + sxy * sxy)
+    tx, ty = (sxx / norm, sxy / norm) if norm > 0.0 else (1.0, 0.0)
+    return cx, cy, tx, ty
+
+
+@njit(cache=True)
+def _mirror_candidate(anchors, s, row, px, py, axis, var, margin_chi2):
+    """The raw mirror of a finite fix and whether it deserves a refinement: enough ranges, a
+    raw misfit within a generous bound (refining moves it at most into the neighbouring
+    minimum) and clearly apart (3 range stds). Returns (candidate, mx, my, chi2 of the fix)."""
+    cx, cy, tx, ty = axis
+    qx, qy = px - cx, -(py - cy)
+    mx, my = cx + tx * qx - ty * qy, cy + tx * qy + ty * qx
+    c_fix, n_valid = _chi2(anchors, s, row, px, py, var)
+    c_raw, _ = _chi2(anchors, s, row, mx, my, var)
+    ok = (n_valid >= 3 and c_raw < c_fix + margin_chi2 + 50.0 * n_valid
+          and math.hypot(mx - px, my - py) > 3.0 * math.sqrt(var))
+    return ok, mx, my, c_fix
+
+
+@njit(cache=True)
+def _mirror_verdict(anchors, s, row, px, py, rx, ry, c_fix, var, margin_chi2):
+    """After refining the mirror to (rx, ry): 1 switch (the ranges reject the fix for it),
+    2 ambiguous (both fit within the margin, clearly apart), 0 keep."""
+    c_mir, _ = _chi2(anchors, s, row, rx, ry, var)
+    if not (math.isfinite(c_mir) and math.hypot(rx - px, ry - py) > 3.0 * math.sqrt(var)):
+        return 0
+    if c_mir < c_fix - margin_chi2:
+        return 1
+    if abs(c_mir - c_fix) <= margin_chi2:
+        return 2
+    return 0
+
+
+@njit(cache=True)
 def mirror_check_2d(anchors, positions, ranges, var, cov, use_cov, code, c, margin_chi2, iterations):
     """The mirror check of ``multilateration.check_mirror_2d`` for every tag of every group.
     Returns (positions, status int8, switched bool)."""
@@ -131,21 +181,7 @@ def mirror_check_2d(anchors, positions, ranges, var, cov, use_cov, code, c, marg
     kx = np.empty(n_count)
     ky = np.empty(n_count)
     for s in range(s_count):
-        # principal axis of the anchors: e^{2i theta} = direction of sum (a - centre)^2
-        cx = cy = 0.0
-        for k in range(n_count):
-            cx += anchors[s, k, 0]
-            cy += anchors[s, k, 1]
-        cx /= n_count
-        cy /= n_count
-        sxx = sxy = 0.0
-        for k in range(n_count):
-            dx, dy = anchors[s, k, 0] - cx, anchors[s, k, 1] - cy
-            sxx += dx * dx - dy * dy
-            sxy += 2.0 * dx * dy
-        norm = math.sqrt(sxx * sxx + sxy * sxy)
-        tx, ty = (sxx / norm, sxy / norm) if norm > 0.0 else (1.0, 0.0)
-        sigma = math.sqrt(var[s])
+        axis = _mirror_axis(anchors, s)
         terms_ready = False
         for m in range(m_count):
             px, py = positions[s, m, 0], positions[s, m, 1]
@@ -154,27 +190,18 @@ def mirror_check_2d(anchors, positions, ranges, var, cov, use_cov, code, c, marg
                 continue
             if n_count < 3:
                 continue
-            # mirror across the axis: centre + e^{2i theta} conj(p - centre)
-            qx, qy = px - cx, -(py - cy)
-            mx, my = cx + tx * qx - ty * qy, cy + tx * qy + ty * qx
-            c_fix, n_valid = _chi2(anchors, s, ranges[s, m], px, py, var[s])
-            c_raw, _ = _chi2(anchors, s, ranges[s, m], mx, my, var[s])
-            # refining moves the mirror at most into the neighbouring minimum: only a raw misfit
-            # within a generous bound can end within the margin
-            if not (n_valid >= 3 and c_raw < c_fix + margin_chi2 + 50.0 * n_valid
-                    and math.hypot(mx - px, my - py) > 3.0 * sigma):
+            ok, mx, my, c_fix = _mirror_candidate(anchors, s, ranges[s, m], px, py, axis, var[s], margin_chi2)
+            if not ok:
                 continue
             if not terms_ready:
                 _line_of_sight_terms(var, cov, use_cov, s, var0, kx, ky)
                 terms_ready = True
             rx, ry = _track_one(anchors, s, ranges[s, m], mx, my, var0, kx, ky, code, c, iterations)
-            c_mir, _ = _chi2(anchors, s, ranges[s, m], rx, ry, var[s])
-            if not (math.isfinite(c_mir) and math.hypot(rx - px, ry - py) > 3.0 * sigma):
-                continue
-            if c_mir < c_fix - margin_chi2:
+            verdict = _mirror_verdict(anchors, s, ranges[s, m], px, py, rx, ry, c_fix, var[s], margin_chi2)
+            if verdict == 1:
                 out[s, m, 0], out[s, m, 1] = rx, ry
                 switched[s, m] = True
-            elif abs(c_mir - c_fix) <= margin_chi2:
+            elif verdict == 2:
                 status[s, m] = TAG_AMBIGUOUS
     return out, status, switched
 
@@ -223,3 +250,166 @@ def residual_statistics(anchors, positions, ranges):
         for k in range(n_count):
             anchor_mean[s, k] /= max(count[k], 1.0)
     return tag_mean, anchor_mean, any_fix
+
+
+@njit(cache=True)
+def _drift_terms(anchor_cov, pred_var, cal_var, use_cov, s, v, var0, kx, ky):
+    """``_line_of_sight_terms`` of group s with range variance v and each anchor's covariance
+    its calibration's plus the isotropic drift part (pred_var - cal_var) / 2 per axis."""
+    for k in range(len(var0)):
+        if use_cov:
+            d = (pred_var[s, k] - cal_var[s, k]) / 2.0
+            c00 = anchor_cov[s, k, 0, 0] + d
+            c11 = anchor_cov[s, k, 1, 1] + d
+            var0[k] = v + 0.5 * (c00 + c11)
+            kx[k] = 0.5 * (c00 - c11)
+            ky[k] = anchor_cov[s, k, 0, 1] + 0.0
+        else:
+            var0[k] = v
+            kx[k] = 0.0
+            ky[k] = 0.0
+
+
+@njit(cache=True)
+def _rms_of(anchors, s, ranges_row, px, py):
+    """RMS range residual of (px, py); NaN below 3 ranges or when not finite (the tracker's rule)."""
+    total = 0.0
+    seen = 0
+    for k in range(len(ranges_row)):
+        r = ranges_row[k]
+        if r != r:
+            continue
+        dx, dy = px - anchors[s, k, 0], py - anchors[s, k, 1]
+        e = math.sqrt(dx * dx + dy * dy) - r
+        total += e * e
+        seen += 1
+    err = math.sqrt(total / seen) if seen else np.nan
+    if seen < 3 or not math.isfinite(err):
+        return np.nan
+    return err
+
+
+@njit(cache=True)
+def _closed_form(anchors, s, ranges_row, var):
+    """Weighted linear least squares in (x, y, |p|^2): a range r to anchor a gives
+    -2 a.p + |p|^2 = r^2 - |a|^2, weight 1 / (4 r^2 var). Returns (ok, x, y); not ok below 3
+    ranges or for a singular system."""
+    n00 = n01 = n02 = n11 = n12 = n22 = 0.0
+    b0 = b1 = b2 = 0.0
+    seen = 0
+    for k in range(len(ranges_row)):
+        r = ranges_row[k]
+        if r != r:
+            continue
+        seen += 1
+        ax, ay = anchors[s, k, 0], anchors[s, k, 1]
+        w = 1.0 / max(4.0 * r * r * var, 1e-12)
+        d0, d1 = -2.0 * ax, -2.0 * ay
+        rhs = r * r - (ax * ax + ay * ay)
+        n00 += w * d0 * d0
+        n01 += w * d0 * d1
+        n02 += w * d0
+        n11 += w * d1 * d1
+        n12 += w * d1
+        n22 += w
+        b0 += w * d0 * rhs
+        b1 += w * d1 * rhs
+        b2 += w * rhs
+    if seen < 3:
+        return False, np.nan, np.nan
+    n00 += 1e-12
+    n11 += 1e-12
+    n22 += 1e-12
+    # Cramer's rule for the symmetric 3x3 system
+    c00 = n11 * n22 - n12 * n12
+    c01 = n02 * n12 - n01 * n22
+    c02 = n01 * n12 - n02 * n11
+    det = n00 * c00 + n01 * c01 + n02 * c02
+    if not (math.isfinite(det) and det != 0.0):
+        return False, np.nan, np.nan
+    c11 = n00 * n22 - n02 * n02
+    c12 = n01 * n02 - n00 * n12
+    x = (c00 * b0 + c01 * b1 + c02 * b2) / det
+    y = (c01 * b0 + c11 * b1 + c12 * b2) / det
+    return math.isfinite(x) and math.isfinite(y), x, y
+
+
+@njit(cache=True)
+def tag_step_2d(anchors, previous, ranges, range_var, pred_var, cal_var, anchor_cov, use_cov, code, c, iterations,
+                restart_base_m, refit_iterations, margin_chi2, mirror_iterations):
+    """One step of tag fixing for every tag of every group (both envs: ``multilateration.fix_tags_2d``).
+
+    anchors (S, N, 2) estimates; previous (S, M, 2) last fixes (NaN = none); ranges (S, M, N)
+    (NaN = missing); range_var (S,) one range's variance; pred_var / cal_var (S, N) each
+    anchor's predicted / calibration error variance; anchor_cov (S, N, 2, 2) its calibration
+    covariance (read if ``use_cov``). Per tag: ``iterations`` Gauss-Newton steps from its last
+    fix; no fix, or an RMS residual above restart_base_m + 2 sqrt(max pred_var), gets the
+    closed form refined by ``refit_iterations`` steps, kept if its residual is lower; then the
+    mirror check (range variance + mean(pred_var) / 2); then the residual statistics.
+
+    Returns positions (S, M, 2), rms (S, M) (NaN = no fix), status (S, M) int8, switched and
+    refit (S, M) bool, tag_mean (S,), anchor_mean (S, N), any_fix (S,)."""
+    s_count, m_count, n_count = ranges.shape
+    pos = np.empty((s_count, m_count, 2))
+    rms = np.empty((s_count, m_count))
+    status = np.zeros((s_count, m_count), np.int8)
+    switched = np.zeros((s_count, m_count), np.bool_)
+    refit = np.zeros((s_count, m_count), np.bool_)
+    var0 = np.empty(n_count)
+    kx = np.empty(n_count)
+    ky = np.empty(n_count)
+    mvar0 = np.empty(n_count)
+    mkx = np.empty(n_count)
+    mky = np.empty(n_count)
+    for s in range(s_count):
+        v = range_var[s]
+        _drift_terms(anchor_cov, pred_var, cal_var, use_cov, s, v, var0, kx, ky)
+        top = 0.0
+        total_pred = 0.0
+        for k in range(n_count):
+            top = max(top, pred_var[s, k])
+            total_pred += pred_var[s, k]
+        # stale anchors raise every residual; only more than they explain means a wrong minimum
+        restart = restart_base_m + 2.0 * math.sqrt(top)
+        mvar = v + total_pred / n_count / 2
+        axis = _mirror_axis(anchors, s)
+        mirror_terms = False
+        for m in range(m_count):
+            row = ranges[s, m]
+            px, py = previous[s, m, 0], previous[s, m, 1]
+            err = np.nan
+            if math.isfinite(px) and math.isfinite(py):
+                px, py = _track_one(anchors, s, row, px, py, var0, kx, ky, code, c, iterations)
+                err = _rms_of(anchors, s, row, px, py)
+            if not err <= restart:
+                ok, sx, sy = _closed_form(anchors, s, row, v)
+                if ok:
+                    qx, qy = _track_one(anchors, s, row, sx, sy, var0, kx, ky, code, c, refit_iterations)
+                    e2 = _rms_of(anchors, s, row, qx, qy)
+                    if math.isfinite(e2) and not e2 >= err:
+                        px, py, err = qx, qy, e2
+                        refit[s, m] = True
+            if not math.isfinite(err):
+                pos[s, m, 0] = pos[s, m, 1] = np.nan
+                rms[s, m] = np.nan
+                status[s, m] = TAG_NO_FIX
+                continue
+            if n_count >= 3:
+                ok, mx, my, c_fix = _mirror_candidate(anchors, s, row, px, py, axis, mvar, margin_chi2)
+                if ok:
+                    if not mirror_terms:
+                        _drift_terms(anchor_cov, pred_var, cal_var, use_cov, s, mvar, mvar0, mkx, mky)
+                        mirror_terms = True
+                    rx, ry = _track_one(anchors, s, row, mx, my, mvar0, mkx, mky, code, c, mirror_iterations)
+                    verdict = _mirror_verdict(anchors, s, row, px, py, rx, ry, c_fix, mvar, margin_chi2)
+                    if verdict == 1:
+                        px, py = rx, ry
+                        switched[s, m] = True
+                        e2 = _rms_of(anchors, s, row, px, py)
+                        err = e2 if math.isfinite(e2) else err
+                    elif verdict == 2:
+                        status[s, m] = TAG_AMBIGUOUS
+            pos[s, m, 0], pos[s, m, 1] = px, py
+            rms[s, m] = err
+    tag_mean, anchor_mean, any_fix = residual_statistics(anchors, pos, ranges)
+    return pos, rms, status, switched, refit, tag_mean, anchor_mean, any_fix

@@ -16,7 +16,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from uwb_env.localization._lm_kernel import LOSS_CODES
-from uwb_env.localization._tracking_kernel import TAG_AMBIGUOUS, TAG_NO_FIX, TAG_OK, mirror_check_2d, track_2d
+from uwb_env.localization._tracking_kernel import (
+    TAG_AMBIGUOUS,
+    TAG_NO_FIX,
+    TAG_OK,
+    mirror_check_2d,
+    tag_step_2d,
+    track_2d,
+)
 from uwb_env.localization.errors import InvalidPositionError, InvalidRangeError
 from uwb_env.localization.robust import check_loss, irls_weights
 
@@ -276,65 +283,6 @@ def _inverse_variance(base_var, base_iv, u, anchor_covariance, valid):
     return np.where(valid, 1.0 / (base_var + extra), 0.0)
 
 
-def refit_stuck_tags(anchors, ranges_m, positions, rms, threshold_m, range_std_m, anchor_covariance=None,
-                     loss="linear", f_scale=2.0) -> np.ndarray:
-    """In place: tags whose tracked fix has an RMS residual above ``threshold_m`` (or none) are
-    solved again from the closed form; the lower residual wins. For one set of anchors (N, dim),
-    ``ranges_m`` (M, N), ``positions`` (M, dim), ``rms`` (M,). Returns the refit tags' indices."""
-    stuck = ~(rms <= threshold_m)
-    if not stuck.any():
-        return np.empty(0, dtype=int)
-    again = locate_tags(anchors, ranges_m[stuck], range_std_m, anchor_covariance=anchor_covariance, loss=loss,
-                        f_scale=f_scale, with_covariance=False)
-    better = again.ok & ~(again.residual_rms_m >= rms[stuck])
-    idx = np.flatnonzero(stuck)[better]
-    positions[idx], rms[idx] = again.positions[better], again.residual_rms_m[better]
-    return idx
-
-
-def refit_stuck_tags_2d(anchors, ranges_m, positions, rms, threshold_m, range_var_m2, anchor_covariance=None,
-                        loss="linear", f_scale=2.0, iterations=10) -> np.ndarray:
-    """:func:`refit_stuck_tags` for many groups at once (the batched env): every stuck tag of
-    every group is solved again from the weighted closed form, refined by
-    :func:`track_tags_2d` with its own group's anchors, all in one batch; the lower residual
-    wins. In place on ``positions`` (S, M, 2) and ``rms`` (S, M); ``threshold_m`` (S,).
-    Returns the (group, tag) indices refit."""
-    stuck = ~(rms <= np.asarray(threshold_m)[:, None])
-    if not stuck.any():
-        return np.empty((0, 2), dtype=int)
-    g, t = np.nonzero(stuck)
-    a = anchors[g]  # (R, N, 2)
-    r = ranges_m[g, t]  # (R, N)
-    valid = np.isfinite(r)
-    rr = np.where(valid, r, 0.0)
-    # weighted closed form in (p, ||p||^2), one 3x3 system per row
-    design = np.concatenate([-2.0 * a, np.ones(a.shape[:2] + (1,))], axis=2)  # (R, N, 3)
-    rhs = rr**2 - (a**2).sum(2)
-    w = valid / np.maximum(4.0 * rr**2 * range_var_m2, 1e-12)
-    normal = np.einsum("rna,rn,rnb->rab", design, w, design) + 1e-12 * np.eye(3)
-    b = np.einsum("rna,rn->ra", design, w * rhs)[..., None]
-    with np.errstate(invalid="ignore"):
-        try:
-            start = np.linalg.solve(normal, b)[:, :2, 0].copy()
-        except np.linalg.LinAlgError:  # one singular system (e.g. ranges of 0 m) must not fail the others
-            start = np.full((len(normal), 2), np.nan)
-            for k in range(len(normal)):
-                try:
-                    start[k] = np.linalg.solve(normal[k], b[k])[:2, 0]
-                except np.linalg.LinAlgError:
-                    pass
-    ok_start = (valid.sum(1) >= 3) & np.isfinite(start).all(1)
-    start[~ok_start] = 0.0
-    cov = None if anchor_covariance is None else anchor_covariance[g]
-    new_pos, new_rms, _ = track_tags_2d(a, start[:, None, :], r[:, None, :], range_var_m2, cov, loss, f_scale,
-                                        iterations)
-    new_pos, new_rms = new_pos[:, 0], new_rms[:, 0]
-    better = ok_start & np.isfinite(new_rms) & ~(new_rms >= rms[g, t])
-    positions[g[better], t[better]] = new_pos[better]
-    rms[g[better], t[better]] = new_rms[better]
-    return np.column_stack([g[better], t[better]])
-
-
 def track_tags_2d(anchors, previous, ranges_m, range_var_m2, anchor_covariance=None, loss="linear", f_scale=2.0,
                   iterations=2):
     """Warm-started planar Gauss-Newton for tracking: many groups of tags, each group against
@@ -365,6 +313,53 @@ def track_tags_2d(anchors, previous, ranges_m, range_var_m2, anchor_covariance=N
 
 
 _NO_COVARIANCE = np.zeros((0, 0, 2, 2))
+
+
+@dataclass
+class TagStep:
+    """One step of tag fixing for S groups of M tags (:func:`fix_tags_2d`)."""
+
+    positions: np.ndarray  # (S, M, 2), NaN = no fix
+    rms_m: np.ndarray  # (S, M) RMS range residual, NaN = no fix
+    status: np.ndarray  # (S, M) int8: TAG_OK, TAG_AMBIGUOUS, TAG_NO_FIX
+    switched: np.ndarray  # (S, M) bool: the fix was replaced by its mirror
+    refit: np.ndarray  # (S, M) bool: solved again from the closed form
+    tag_residual_m: np.ndarray  # (S,) mean RMS residual of the fixed tags
+    anchor_residual_m: np.ndarray  # (S, N) each anchor's mean |residual| over them
+    any_fix: np.ndarray  # (S,) bool
+
+
+def fix_tags_2d(anchors, previous, ranges_m, range_var_m2, predicted_var_m2, calibration_var_m2,
+                anchor_covariance=None, loss="linear", f_scale=2.0, iterations=2, restart_residual_m=0.3,
+                refit_iterations=10, margin_chi2=10.83, mirror_iterations=3) -> TagStep:
+    """Tag fixing of one step for both envs (one env: S = 1; the batched env: S copies), one
+    compiled pass (``_tracking_kernel.tag_step_2d``):
+
+    1. track: ``iterations`` Gauss-Newton steps from each tag's last fix (:func:`track_tags_2d`'s
+       maths; ranges weighted by 1 / (range variance + the anchor's variance along the line of
+       sight), that anchor covariance being its calibration's plus the drift part
+       (predicted - calibration variance) / 2 per axis);
+    2. restart where a tag has no fix or an RMS residual above ``restart_residual_m`` + 2 x the
+       largest predicted anchor std (stale anchors raise every residual; only more than they
+       explain suggests a wrong minimum): the weighted closed form refined by
+       ``refit_iterations`` steps, kept if it fits better (:func:`refit_stuck_tags_2d`);
+    3. the mirror check (:func:`check_mirror_2d`, with the range variance plus half the mean
+       predicted anchor variance): a fix the ranges reject for its mirror is replaced, one that
+       fits as well as its mirror is ``TAG_AMBIGUOUS``;
+    4. the residual statistics of the fixes (:func:`~uwb_env.localization._tracking_kernel.residual_statistics`).
+
+    Shapes: anchors (S, N, 2); previous (S, M, 2) (NaN = no fix yet); ranges_m (S, M, N) (NaN
+    = missing); range_var_m2 scalar or (S,); predicted / calibration variances (S, N);
+    anchor_covariance (S, N, 2, 2) or None (ranges weighted by the range variance alone).
+    """
+    ranges_m = np.ascontiguousarray(ranges_m, dtype=np.float64)
+    var, cov, use_cov, code, c = _kernel_options(range_var_m2, anchor_covariance, loss, f_scale, len(ranges_m))
+    out = tag_step_2d(np.ascontiguousarray(anchors, dtype=np.float64), np.ascontiguousarray(previous, dtype=np.float64),
+                      ranges_m, var, np.ascontiguousarray(predicted_var_m2, dtype=np.float64),
+                      np.ascontiguousarray(calibration_var_m2, dtype=np.float64), cov, use_cov, code, c,
+                      int(iterations), float(restart_residual_m), int(refit_iterations), float(margin_chi2),
+                      int(mirror_iterations))
+    return TagStep(*out)
 
 
 def _kernel_options(range_var_m2, anchor_covariance, loss, f_scale, groups: int) -> tuple:
