@@ -2,13 +2,15 @@
 
 :class:`BatchedSystem` runs B copies of :class:`~uwb_env.system.LocalizationSystem`'s
 dynamics with one decision per copy (the centralized scheduler): one motion kernel moves the
-robots of all copies, one odometry model drifts all anchors, one Gauss-Newton call fixes the
-tags of all copies (each tag against its own copy's anchors), and features, errors and
-rewards are computed for all copies at once. The pieces are the single env's: World's
+robots of all copies, one odometry model drifts all anchors, one call of the single env's tag
+fixing (``multilateration.fix_tags_2d``: tracking, restarts, mirror check, residual
+statistics) fixes the tags of all copies (each tag against its own copy's anchors), and
+features, errors and rewards are computed for all copies at once. The pieces are the single
+env's: World's
 placement, the round's exchange simulation (copies that start a round on the same step form a
 :class:`~uwb_env.sim.round_cohort.RoundCohort`), the same motion compensation, and the
 calibrations of all copies in one batched solve (``batched_calibration``, tested equal to the
-full solver); only what that solve hands back (missing pairs, thin layouts, pair rejection)
+full solver; the single env's usual later rounds take it too); only what that solve hands back (missing pairs, thin layouts, pair rejection)
 goes to the full solver per copy.
 
 Differences from the single env, by design: 2D only, the centralized ``calibrate`` action
