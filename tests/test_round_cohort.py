@@ -134,15 +134,16 @@ def test_batched_first_calibration_poor_fits_equal_the_full_solvers():
         if res is None:
             continue
         full = calibrate_anchors(matrix, dim=2, loss="huber", f_scale=3.0, range_std_m=std)
-        assert res.status == full.status
+        assert res.status == full.status and res.ambiguous == full.ambiguous
         np.testing.assert_allclose(res.positions, full.positions, atol=1e-5)
         poor += res.status == "poor_fit"
     assert poor >= 40  # the case exists and is handled in the batch
 
 
 def test_batched_later_calibrations_equal_the_full_solver_on_the_envs_rounds():
-    """Every round the batched env solves in the batch (ok and poor fits) against the full
-    solver with the same prior and prior std: same status, same positions."""
+    """Every round the batched env solves in the batch against the full solver with the same
+    prior and prior std: same status (ok: poor fits go to the full solver), not ambiguous,
+    same positions."""
     import uwb_env.batch as bm
     from uwb_env.batch import BatchedSystem
 
@@ -154,9 +155,9 @@ def test_batched_later_calibrations_equal_the_full_solver_on_the_envs_rounds():
         log.append({"mean": mean, "count": count, "complete": out[0]})
         return out
 
-    def spy_later(pairs, dist, var, prior, prior_std, *args):
-        res = later(pairs, dist, var, prior, prior_std, *args)
-        log[-1].update(prior=prior, prior_std=prior_std, res=res)
+    def spy_later(pairs, dist, var, prior, *args):
+        res = later(pairs, dist, var, prior, *args)
+        log[-1].update(prior=prior, res=res)
         return res
 
     bm.symmetric_arrays, bm.later_calibrations = spy_sym, spy_later
@@ -178,8 +179,9 @@ def test_batched_later_calibrations_equal_the_full_solver_on_the_envs_rounds():
             matrix = RangeMatrix(entry["mean"][k], np.full(entry["mean"][k].shape, 0.1), entry["count"][k])
             full = calibrate_anchors(matrix, dim=2, prior=entry["prior"][q], gauge="prior", loss="huber",
                                      f_scale=3.0, range_std_m=system.range_std_m,
-                                     prior_std_m=entry["prior_std"][q])
-            assert res.status == full.status
+                                     # the prior's std only weighs extra starts, tried on poor fits
+                                     prior_std_m=np.full(len(entry["prior"][q]), system.range_std_m))
+            assert res.status == full.status == "ok" and not full.ambiguous
             np.testing.assert_allclose(res.positions, full.positions, atol=1e-6)
             statuses.append(res.status)
-    assert len(statuses) > 300 and statuses.count("poor_fit") > 20  # NLOS rounds are solved in the batch too
+    assert len(statuses) > 250

@@ -93,3 +93,22 @@ def test_drift_variance_of_every_robot_equals_that_of_each_subset():
     assert (everyone > 0).all()
     np.testing.assert_array_equal(everyone, o.expected_drift_var_m2(2, np.arange(20)))
     np.testing.assert_array_equal(everyone[3:7], o.expected_drift_var_m2(2, np.arange(3, 7)))
+
+
+# Robot 25's positions at steps 115-119 of the scene below, recorded from the numpy code: with
+# zero-length pauses a robot that reaches its waypoint steps exactly the distance to it, so the
+# distance must be numpy's |z| to the last bit (math.hypot differs here in the 16th digit).
+RECORDED_ZERO_PAUSE = [4.465281843132985, 0.07686815034885125, 4.378734684076205, 0.06685583561782901, 4.29171183160692, 0.06658317554806069, 4.205556145557497, 0.05895079929814973, 4.116945328195512, 0.05174222320788706]
+
+
+def test_motion_kernel_steps_numpys_waypoint_distance():
+    m = MotionModel([(MotionConfig(model="patrol"), 4),
+                     (MotionConfig(model="patrol", pause_min_s=0.0, pause_max_s=0.0), 40)], 20.0)
+    rng = np.random.default_rng(42)
+    m.reset(rng.uniform(0, 20, (44, 2)), rng)
+    seen = []
+    for t in range(120):
+        m.step(0.2, rng)
+        if t >= 115:
+            seen.append(m.positions[25].copy())
+    np.testing.assert_allclose(np.ravel(seen), RECORDED_ZERO_PAUSE, rtol=RTOL)

@@ -1,17 +1,16 @@
 """Many copies of the scheduling task stepped together in numpy (the batched mode).
 
-:class:`BatchedSystem` runs B copies of :class:`~uwb_env.system.LocalizationSystem`'s
-dynamics with one decision per copy (the centralized scheduler): one motion kernel moves the
-robots of all copies, one odometry model drifts all anchors, one call of the single env's tag
-fixing (``multilateration.fix_tags_2d``: tracking, restarts, mirror check, residual
-statistics) fixes the tags of all copies (each tag against its own copy's anchors), and
-features, errors and rewards are computed for all copies at once. The pieces are the single
-env's: World's
+:class:`BatchedSystem` runs B copies of :class:`~uwb_env.system.LocalizationSystem`'s dynamics
+with one decision per copy (the centralized scheduler): one motion kernel moves the robots of
+all copies, one odometry model drifts all anchors, one call of the single env's tag fixing
+(``multilateration.fix_tags_2d``: tracking, restarts, mirror check, residual statistics) fixes
+the tags of all copies (each tag against its own copy's anchors), and features, errors and
+rewards are computed for all copies at once. The pieces are the single env's: World's
 placement, the round's exchange simulation (copies that start a round on the same step form a
 :class:`~uwb_env.sim.round_cohort.RoundCohort`), the same motion compensation, and the
 calibrations of all copies in one batched solve (``batched_calibration``, tested equal to the
-full solver; the single env's usual later rounds take it too); only what that solve hands back (missing pairs, thin layouts, pair rejection)
-goes to the full solver per copy.
+full solver; the single env's usual later rounds take it too); only what that solve hands back
+(missing pairs, thin layouts, pair rejection) goes to the full solver per copy.
 
 Differences from the single env, by design: 2D only, the centralized ``calibrate`` action
 only; episodes of all copies start and end together (same ``max_cycles``); the first
@@ -236,8 +235,7 @@ class BatchedSystem:
         rows = np.flatnonzero(complete)
         if len(rows):
             solver = self.config.solver
-            prior_std = np.sqrt(np.maximum(self.predicted_anchor_var_m2()[copies[rows]], self.range_std_m**2))
-            solved = later_calibrations(pairs, dist[rows], var[rows], est_mid[rows], prior_std, solver.loss,
+            solved = later_calibrations(pairs, dist[rows], var[rows], est_mid[rows], solver.loss,
                                         solver.f_scale_sigmas, solver.gauge)
             done = solved.status != STATUS_NONE
             ok[rows[done]] = True

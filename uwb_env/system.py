@@ -273,7 +273,7 @@ class LocalizationSystem:
             # the usual round (2D, every pair, a fit the verdict accepts): the batched env's
             # compiled solve for a team of one (the same answer; tested against the full solver);
             # whatever it hands back goes to the full solver's starts and checks
-            result = self._later_calibration_compiled(matrix, est_mid, prior_std) if self.dim == 2 else None
+            result = self._later_calibration_compiled(matrix, est_mid) if self.dim == 2 else None
             if result is None:
                 result = calibrate_anchors(
                     matrix, dim=self.dim, prior=est_mid, gauge=solver.gauge, loss=solver.loss,
@@ -287,15 +287,15 @@ class LocalizationSystem:
         self._apply_calibration(result, self.world.anchors_est - est_mid, path.midpoint_drift())
         return None
 
-    def _later_calibration_compiled(self, matrix, est_mid: np.ndarray, prior_std: np.ndarray):
+    def _later_calibration_compiled(self, matrix, est_mid: np.ndarray):
         """``batched_calibration.later_calibrations`` for this team alone: its result, or None
         where the full solver would do more (a missing pair, a rejected fit it can work on)."""
         complete, pairs, dist, var = symmetric_arrays(matrix.mean_m[None], matrix.count[None], self.range_std_m)
         if not complete[0]:
             return None
         solver = self.config.solver
-        solved = later_calibrations(pairs, dist, var, est_mid[None], prior_std[None], solver.loss,
-                                    solver.f_scale_sigmas, solver.gauge)
+        solved = later_calibrations(pairs, dist, var, est_mid[None], solver.loss, solver.f_scale_sigmas,
+                                    solver.gauge)
         return solved.result(0)
 
     def _record_verdict(self, result) -> None:

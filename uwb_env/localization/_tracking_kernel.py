@@ -292,8 +292,9 @@ def _rms_of(anchors, s, ranges_row, px, py):
 @njit(cache=True)
 def _closed_form(anchors, s, ranges_row, var):
     """Weighted linear least squares in (x, y, |p|^2): a range r to anchor a gives
-    -2 a.p + |p|^2 = r^2 - |a|^2, weight 1 / (4 r^2 var). Returns (ok, x, y); not ok below 3
-    ranges or for a singular system."""
+    -2 a.p + |p|^2 = r^2 - |a|^2, weight 1 / var(r^2) = 1 / (4 r^2 var + 2 var^2) (the second
+    term keeps a range of ~0 m from weighing ~1e12). Returns (ok, x, y); not ok below 3 ranges
+    or for a singular system."""
     n00 = n01 = n02 = n11 = n12 = n22 = 0.0
     b0 = b1 = b2 = 0.0
     seen = 0
@@ -303,7 +304,7 @@ def _closed_form(anchors, s, ranges_row, var):
             continue
         seen += 1
         ax, ay = anchors[s, k, 0], anchors[s, k, 1]
-        w = 1.0 / max(4.0 * r * r * var, 1e-12)
+        w = 1.0 / (4.0 * r * r * var + 2.0 * var * var)  # 1 / var(r^2) for Gaussian range noise
         d0, d1 = -2.0 * ax, -2.0 * ay
         rhs = r * r - (ax * ax + ay * ay)
         n00 += w * d0 * d0
@@ -317,21 +318,46 @@ def _closed_form(anchors, s, ranges_row, var):
         b2 += w * rhs
     if seen < 3:
         return False, np.nan, np.nan
-    n00 += 1e-12
-    n11 += 1e-12
-    n22 += 1e-12
-    # Cramer's rule for the symmetric 3x3 system
-    c00 = n11 * n22 - n12 * n12
-    c01 = n02 * n12 - n01 * n22
-    c02 = n01 * n12 - n02 * n11
-    det = n00 * c00 + n01 * c01 + n02 * c02
-    if not (math.isfinite(det) and det != 0.0):
-        return False, np.nan, np.nan
-    c11 = n00 * n22 - n02 * n02
-    c12 = n01 * n02 - n00 * n12
-    x = (c00 * b0 + c01 * b1 + c02 * b2) / det
-    y = (c01 * b0 + c11 * b1 + c12 * b2) / det
+    # LU with partial pivoting (as LAPACK's gesv), not Cramer's rule: the system can be badly
+    # conditioned (anchors far from the origin, near-collinear anchors)
+    a = np.array([[n00 + 1e-12, n01, n02, b0], [n01, n11 + 1e-12, n12, b1], [n02, n12, n22 + 1e-12, b2]])
+    for col in range(3):
+        piv = col
+        for r in range(col + 1, 3):
+            if abs(a[r, col]) > abs(a[piv, col]):
+                piv = r
+        if not (math.isfinite(a[piv, col]) and a[piv, col] != 0.0):
+            return False, np.nan, np.nan
+        if piv != col:
+            for q in range(4):
+                a[col, q], a[piv, q] = a[piv, q], a[col, q]
+        for r in range(col + 1, 3):
+            f = a[r, col] / a[col, col]
+            for q in range(col, 4):
+                a[r, q] -= f * a[col, q]
+    z = a[2, 3] / a[2, 2]
+    y = (a[1, 3] - a[1, 2] * z) / a[1, 1]
+    x = (a[0, 3] - a[0, 1] * y - a[0, 2] * z) / a[0, 0]
     return math.isfinite(x) and math.isfinite(y), x, y
+
+
+@njit(cache=True)
+def _degenerate(anchors, s, ranges_row, px, py):
+    """The ranges do not fix (px, py) in two directions (``multilateration``'s DEGENERATE rule:
+    smallest eigenvalue of sum u u^T at most 1e-8 of the largest), e.g. collinear anchors."""
+    a11 = a12 = a22 = 0.0
+    for k in range(len(ranges_row)):
+        if ranges_row[k] != ranges_row[k]:
+            continue
+        dx, dy = px - anchors[s, k, 0], py - anchors[s, k, 1]
+        dist = max(math.sqrt(dx * dx + dy * dy), 1e-12)
+        ux, uy = dx / dist, dy / dist
+        a11 += ux * ux
+        a12 += ux * uy
+        a22 += uy * uy
+    half = 0.5 * (a11 + a22)
+    root = math.sqrt(max(half * half - (a11 * a22 - a12 * a12), 0.0))
+    return not half - root > 1e-8 * (half + root)
 
 
 @njit(cache=True)
@@ -386,7 +412,7 @@ def tag_step_2d(anchors, previous, ranges, range_var, pred_var, cal_var, anchor_
                 if ok:
                     qx, qy = _track_one(anchors, s, row, sx, sy, var0, kx, ky, code, c, refit_iterations)
                     e2 = _rms_of(anchors, s, row, qx, qy)
-                    if math.isfinite(e2) and not e2 >= err:
+                    if math.isfinite(e2) and not e2 >= err and not _degenerate(anchors, s, row, qx, qy):
                         px, py, err = qx, qy, e2
                         refit[s, m] = True
             if not math.isfinite(err):

@@ -342,7 +342,8 @@ def fix_tags_2d(anchors, previous, ranges_m, range_var_m2, predicted_var_m2, cal
     2. restart where a tag has no fix or an RMS residual above ``restart_residual_m`` + 2 x the
        largest predicted anchor std (stale anchors raise every residual; only more than they
        explain suggests a wrong minimum): the weighted closed form refined by
-       ``refit_iterations`` steps, kept if it fits better (:func:`refit_stuck_tags_2d`);
+       ``refit_iterations`` steps, kept if it fits better and the ranges fix it in two
+       directions (not degenerate);
     3. the mirror check (:func:`check_mirror_2d`, with the range variance plus half the mean
        predicted anchor variance): a fix the ranges reject for its mirror is replaced, one that
        fits as well as its mirror is ``TAG_AMBIGUOUS``;

@@ -15,6 +15,8 @@ import math
 import numpy as np
 from numba import njit
 
+from uwb_env.sim._numpy_complex import magnitude
+
 
 @njit(cache=True)
 def waypoint_reach(pos, waypoints, waypoint_mask, speeds, dt_s, pause_left_s):
@@ -28,7 +30,7 @@ def waypoint_reach(pos, waypoints, waypoint_mask, speeds, dt_s, pause_left_s):
     for i in range(n):
         t = waypoints[i] - complex(pos[i, 0], pos[i, 1])
         to_wp[i] = t
-        d = math.hypot(t.real, t.imag)
+        d = magnitude(t.real, t.imag)  # numpy's |z| (the waypoint distance is stepped exactly)
         dist[i] = d
         if waypoint_mask[i] and d <= speeds[i] * dt_s and pause_left_s[i] <= 0.0:
             reached[i] = True

@@ -1,9 +1,8 @@
 """Compiled step of :class:`~uwb_env.sim.odometry.OdometryModel` (the ``distance`` model).
 
 One loop per robot instead of ~25 numpy calls. The complex products and magnitudes are
-written out as numpy's own loops compute them on this CPU class (products with fused
-multiply-adds, magnitudes as ``big * sqrt(1 + (small / big)^2)``), so a seed gives the same
-trajectory to the last bit as the numpy version it replaced (tested on recorded values).
+written out as numpy computes them (``_numpy_complex``), so a seed gives the same trajectory
+to the last bit as the numpy version it replaced (tested on values recorded from it).
 """
 
 from __future__ import annotations
@@ -11,30 +10,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, types
-from numba.extending import intrinsic
+from numba import njit
 
-
-@intrinsic
-def fma(typingctx, a, b, c):
-    """a * b + c with one rounding (LLVM's fma intrinsic)."""
-    sig = types.float64(types.float64, types.float64, types.float64)
-
-    def codegen(context, builder, signature, args):
-        return builder.fma(*args)
-
-    return sig, codegen
-
-
-@njit(cache=True)
-def magnitude(re, im):
-    """|re + i im| as numpy's complex absolute computes it."""
-    x, y = abs(re), abs(im)
-    big, small = max(x, y), min(x, y)
-    if big == 0.0:
-        return 0.0
-    r = small / big
-    return big * math.sqrt(fma(r, r, 1.0))
+from uwb_env.sim._numpy_complex import fma, magnitude
 
 
 @njit(cache=True)
