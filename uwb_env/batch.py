@@ -13,7 +13,10 @@ full solver; the single env's usual later rounds take it too); only what that so
 (missing pairs, thin layouts, pair rejection) goes to the full solver per copy.
 
 Differences from the single env, by design: 2D only, the centralized ``calibrate`` action
-only; episodes of all copies start and end together (same ``max_cycles``); the first
+only; 4-anchor later rounds that fit poorly keep the batched solve's answer where its
+alternative starts (MDS, single-anchor reflections) neither beat it nor reveal an ambiguity
+(``later_calibrations(poor_fit_prior_std_m=...)``, an approximation of the full solver the single
+env uses: ~0.1-0.3 % of them differ from its answer); episodes of all copies start and end together (same ``max_cycles``); the first
 calibration is one round (the single env pools more while the shape is ambiguous); one
 generator drives the batch (same seed, same batch). Episode statistics match the single env's
 in distribution (tested with a two-sample KS test).
@@ -235,8 +238,9 @@ class BatchedSystem:
         rows = np.flatnonzero(complete)
         if len(rows):
             solver = self.config.solver
+            prior_std = np.sqrt(np.maximum(self.predicted_anchor_var_m2()[copies[rows]], self.range_std_m**2))
             solved = later_calibrations(pairs, dist[rows], var[rows], est_mid[rows], solver.loss,
-                                        solver.f_scale_sigmas, solver.gauge)
+                                        solver.f_scale_sigmas, solver.gauge, poor_fit_prior_std_m=prior_std)
             done = solved.status != STATUS_NONE
             ok[rows[done]] = True
             if done.any():
