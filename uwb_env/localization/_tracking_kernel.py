@@ -273,16 +273,7 @@ def _drift_terms(anchor_cov, pred_var, cal_var, use_cov, s, v, var0, kx, ky):
 @njit(cache=True)
 def _rms_of(anchors, s, ranges_row, px, py):
     """RMS range residual of (px, py); NaN below 3 ranges or when not finite (the tracker's rule)."""
-    total = 0.0
-    seen = 0
-    for k in range(len(ranges_row)):
-        r = ranges_row[k]
-        if r != r:
-            continue
-        dx, dy = px - anchors[s, k, 0], py - anchors[s, k, 1]
-        e = math.sqrt(dx * dx + dy * dy) - r
-        total += e * e
-        seen += 1
+    total, seen = _chi2(anchors, s, ranges_row, px, py, 1.0)
     err = math.sqrt(total / seen) if seen else np.nan
     if seen < 3 or not math.isfinite(err):
         return np.nan
