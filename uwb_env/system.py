@@ -266,7 +266,6 @@ class LocalizationSystem:
         # odometry accumulated since then.
         path = self._round_path
         est_mid = path.midpoint_estimates()
-        prior_std = np.sqrt(np.maximum(self.predicted_anchor_var_m2(), self.range_std_m**2))
         try:
             matrix = self.world.round_correction.correct_matrix(finished.result())  # hardware: raises on failure
             matrix = self._to_round_midpoint(matrix, finished)
@@ -275,6 +274,7 @@ class LocalizationSystem:
             # whatever it hands back goes to the full solver's starts and checks
             result = self._later_calibration_compiled(matrix, est_mid) if self.dim == 2 else None
             if result is None:
+                prior_std = np.sqrt(np.maximum(self.predicted_anchor_var_m2(), self.range_std_m**2))
                 result = calibrate_anchors(
                     matrix, dim=self.dim, prior=est_mid, gauge=solver.gauge, loss=solver.loss,
                     f_scale=solver.f_scale_sigmas, range_std_m=self.range_std_m, prior_std_m=prior_std,
@@ -393,8 +393,7 @@ class LocalizationSystem:
             self.tag_status = step.status[0]
             residuals = step.tag_residual_m, step.anchor_residual_m, step.any_fix
         else:
-            positions, rms = self._fix_tags_3d(anchors, ranges, pred_var, solver)
-            residuals = None
+            positions, rms, residuals = self._fix_tags_3d(anchors, ranges, pred_var, solver)
         dt = world.dt_s
         all_ok = math.isfinite(_sum(rms))  # a tag without a fix has a NaN rms
         ok = np.isfinite(rms)
@@ -413,8 +412,7 @@ class LocalizationSystem:
         # Residual statistics: what a deployed system can see that its anchors went stale (the
         # batched env's kernel, for a batch of one).
         i = self._hist_index % self.config.residual_window_steps
-        tag_mean, anchor_mean, any_fix = residuals or residual_statistics(
-            anchors[None], np.where(ok[:, None], positions, np.nan)[None], ranges[None])
+        tag_mean, anchor_mean, any_fix = residuals
         if any_fix[0]:
             self._tag_residual_hist[i], self._anchor_residual_hist[i] = tag_mean[0], anchor_mean[0]
         else:  # no usable fix this step: carry the previous statistics
@@ -422,10 +420,11 @@ class LocalizationSystem:
             self._anchor_residual_hist[i] = self._anchor_residual_hist[i - 1]
         self._hist_index += 1
 
-    def _fix_tags_3d(self, anchors, ranges, pred_var, solver) -> tuple[np.ndarray, np.ndarray]:
+    def _fix_tags_3d(self, anchors, ranges, pred_var, solver) -> tuple:
         """3D tags: the general solver from the last fixes (restarting stuck ones), then the
-        mirror check across the anchors' plane. Returns positions (M, 3) and rms (M,) (NaN =
-        no fix); sets the tags' status."""
+        mirror check across the anchors' plane. Returns positions (M, 3), rms (M,) (NaN = no
+        fix) and the residual statistics (``residual_statistics``, a batch of one); sets the
+        tags' status."""
         cov = None
         if solver.use_anchor_covariance:  # calibration covariance + the isotropic drift part
             cov = self.anchor_cov + ((pred_var - self.calibration_var_m2) / self.dim)[:, None, None] * self._eye
@@ -449,7 +448,8 @@ class LocalizationSystem:
             mean_sq = np.nansum(res * res, axis=1) / np.maximum(n_ranges, 1)
             rms = np.where(np.isfinite(rms) & (n_ranges > 0), np.sqrt(mean_sq), rms)
         self.tag_status = np.where(np.isfinite(rms), status, TAG_NO_FIX).astype(np.int8)
-        return positions, rms
+        fixed = np.where(np.isfinite(rms)[:, None], positions, np.nan)
+        return positions, rms, residual_statistics(anchors[None], fixed[None], ranges[None])
 
     def _hold_tags(self, dt: float) -> None:
         self.tag_fix_age_s += dt

@@ -20,18 +20,22 @@ TAG_OK, TAG_AMBIGUOUS, TAG_NO_FIX = 0, 1, 2
 
 
 @njit(cache=True)
+def _set_terms(k, v, c00, c01, c11, var0, kx, ky):
+    """Anchor k's sigma^2 + tr(C)/2 and the anisotropic part of u^T C u, for range variance v
+    and anchor covariance [[c00, c01], [c01, c11]]."""
+    var0[k] = v + 0.5 * (c00 + c11)
+    kx[k] = 0.5 * (c00 - c11)
+    ky[k] = c01
+
+
+@njit(cache=True)
 def _line_of_sight_terms(var, cov, use_cov, s, var0, kx, ky):
     """Per anchor of group s: sigma^2 + tr(C)/2 and the anisotropic part of u^T C u."""
     for k in range(len(var0)):
         if use_cov:
-            c00, c01, c11 = cov[s, k, 0, 0], cov[s, k, 0, 1], cov[s, k, 1, 1]
-            var0[k] = var[s] + 0.5 * (c00 + c11)
-            kx[k] = 0.5 * (c00 - c11)
-            ky[k] = c01
+            _set_terms(k, var[s], cov[s, k, 0, 0], cov[s, k, 0, 1], cov[s, k, 1, 1], var0, kx, ky)
         else:
-            var0[k] = var[s]
-            kx[k] = 0.0
-            ky[k] = 0.0
+            _set_terms(k, var[s], 0.0, 0.0, 0.0, var0, kx, ky)
 
 
 @njit(cache=True)
@@ -259,15 +263,10 @@ def _drift_terms(anchor_cov, pred_var, cal_var, use_cov, s, v, var0, kx, ky):
     for k in range(len(var0)):
         if use_cov:
             d = (pred_var[s, k] - cal_var[s, k]) / 2.0
-            c00 = anchor_cov[s, k, 0, 0] + d
-            c11 = anchor_cov[s, k, 1, 1] + d
-            var0[k] = v + 0.5 * (c00 + c11)
-            kx[k] = 0.5 * (c00 - c11)
-            ky[k] = anchor_cov[s, k, 0, 1] + 0.0
+            _set_terms(k, v, anchor_cov[s, k, 0, 0] + d, anchor_cov[s, k, 0, 1] + 0.0, anchor_cov[s, k, 1, 1] + d,
+                       var0, kx, ky)
         else:
-            var0[k] = v
-            kx[k] = 0.0
-            ky[k] = 0.0
+            _set_terms(k, v, 0.0, 0.0, 0.0, var0, kx, ky)
 
 
 @njit(cache=True)
