@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from uwb_env.localization._alignment_kernel import FRAME_COINCIDENT, FRAME_OK, paper_frame_2d, rigid_align_2d
 from uwb_env.localization.errors import GeometryError
 
 
@@ -24,11 +25,17 @@ def rigid_align(
             (rotation about that point), as used for "anchor 0 stays where it is".
 
     Returns:
-        (R (dim, dim), t (dim,)).
+        (R (dim, dim), t (dim,)). In 2D in closed form (``_alignment_kernel.rigid_align_2d``:
+        the SVD's answer for a non-singular cross-covariance, a rotation for a singular one).
     """
     source = np.asarray(source, dtype=float)
     target = np.asarray(target, dtype=float)
     w = np.ones(len(source)) if weights is None else np.asarray(weights, dtype=float)
+    if source.ndim == 2 and source.shape[1] == 2 and target.shape == source.shape and w.shape == (len(source),):
+        rot, trans = rigid_align_2d(source, target, w, -1 if pivot is None else int(pivot), bool(allow_reflection))
+        if np.isfinite(rot).all() and np.isfinite(trans).all():
+            return rot, trans
+        # non-finite points or weights summing to zero: numpy's error, as before
     if pivot is None:
         mu_s = (w[:, None] * source).sum(0) / w.sum()
         mu_t = (w[:, None] * target).sum(0) / w.sum()
@@ -119,6 +126,13 @@ def paper_frame(points: np.ndarray, refs: tuple[int, ...] | None = None) -> tupl
     points = np.asarray(points, dtype=float)
     dim = points.shape[1]
     refs = frame_refs(points) if refs is None else refs
+    if dim == 2 and np.isfinite(points).all():
+        rot, trans, code = paper_frame_2d(points, int(refs[0]), int(refs[1]))
+        if code == FRAME_OK:
+            return rot, trans
+        if code == FRAME_COINCIDENT:
+            raise GeometryError(f"anchors {refs[0]} and {refs[1]} coincide: the x axis is undefined")
+        raise GeometryError("all anchors are collinear: the y axis is undefined")
     origin = points[refs[0]]
     rel = points - origin
     scale = max(np.abs(rel).max(), 1e-12)

@@ -329,6 +329,7 @@ class _Candidate:
     p_value: float
     fit_ok: bool
     max_z: float
+    prior_score: float | None = None  # memo of _Problem.score once the prior is known
 
     @property
     def cost(self) -> float:
@@ -349,9 +350,11 @@ class _Problem:
         """What the starts compete on: the cost, plus the prior's chi-square when it is known."""
         if self.prior is None:
             return _cost(cand)
-        rot, trans = rigid_align(cand.x, self.prior, allow_reflection=True)
-        d2 = ((cand.x @ rot.T + trans - self.prior) ** 2).sum(1)
-        return _cost(cand) + 0.5 * float(d2 @ self.prior_weight)
+        if cand.prior_score is None:  # unfold compares its best against every reflection
+            rot, trans = rigid_align(cand.x, self.prior, allow_reflection=True)
+            d2 = ((cand.x @ rot.T + trans - self.prior) ** 2).sum(1)
+            cand.prior_score = _cost(cand) + 0.5 * float(d2 @ self.prior_weight)
+        return cand.prior_score
 
     @property
     def full(self) -> np.ndarray:
