@@ -208,6 +208,53 @@ def test_rigid_align_recovers_a_known_transform(rng):
     assert np.abs(rot - q).max() < 0.2  # and the rotation is still close to the true one
 
 
+
+def _svd_rigid_align(source, target, w, allow_reflection, pivot):
+    """The weighted Kabsch solution by SVD (what rigid_align computed before its 2D closed form)."""
+    if pivot is None:
+        mu_s, mu_t = (w[:, None] * source).sum(0) / w.sum(), (w[:, None] * target).sum(0) / w.sum()
+    else:
+        mu_s, mu_t = source[pivot], target[pivot]
+    u, _, vt = np.linalg.svd(((target - mu_t) * w[:, None]).T @ (source - mu_s))
+    d = np.ones(source.shape[1])
+    if not allow_reflection and np.linalg.det(u @ vt) < 0:
+        d[-1] = -1.0
+    rot = (u * d) @ vt
+    return rot, mu_t - mu_s @ rot.T
+
+
+def test_planar_rigid_align_closed_form_equals_the_svd(rng):
+    """2D alignment is solved in closed form (compiled): the SVD's answer for every weighting,
+    pivot and reflection option, mirrored targets included."""
+    for trial in range(400):
+        n = int(rng.integers(3, 9))
+        x = rng.normal(size=(n, 2)) * 5.0
+        q, _ = np.linalg.qr(rng.normal(size=(2, 2)))  # a rotation or a reflection
+        y = x @ q.T + rng.normal(size=2) + rng.uniform(0.0, 3.0) * rng.normal(size=(n, 2))
+        w = rng.uniform(0.1, 2.0, n) if trial % 2 else np.ones(n)
+        pivot = None if trial % 3 else int(rng.integers(n))
+        reflect = bool(trial % 4)
+        rot, trans = rigid_align(x, y, w, allow_reflection=reflect, pivot=pivot)
+        want_rot, want_trans = _svd_rigid_align(x, y, w, reflect, pivot)
+        np.testing.assert_allclose(rot, want_rot, atol=1e-9)
+        np.testing.assert_allclose(trans, want_trans, atol=1e-9)
+    with pytest.raises(np.linalg.LinAlgError):  # non-finite points: numpy's error, as before
+        rigid_align(np.full((3, 2), np.nan), np.zeros((3, 2)))
+
+
+def test_planar_paper_frame_rules(rng):
+    x = rng.normal(size=(5, 2)) * 4.0
+    rot, trans = paper_frame(x, (1, 3))
+    f = x @ rot.T + trans
+    np.testing.assert_allclose(f[1], 0.0, atol=1e-12)  # refs[0] at the origin
+    assert abs(f[3, 1]) < 1e-12 and f[3, 0] > 0  # refs[1] on +x
+    assert f[:, 1].sum() > 0  # the rest to +y
+    np.testing.assert_allclose(rot @ rot.T, np.eye(2), atol=1e-12)
+    with pytest.raises(GeometryError, match="coincide"):
+        paper_frame(np.array([[0.0, 0.0], [0.0, 0.0], [1.0, 1.0]]), (0, 1))
+    with pytest.raises(GeometryError, match="collinear"):
+        paper_frame(np.array([[0.0, 0.0], [1.0, 1.0], [2.0, 2.0]]), (0, 1))
+
 # -- errors -------------------------------------------------------------------------------------
 def test_too_few_anchors():
     with pytest.raises(TooFewAnchorsError):
