@@ -4,7 +4,14 @@ form, one call for many groups equals one call per group, degenerate rows fail a
 import numpy as np
 
 from uwb_env.localization import locate_tags
-from uwb_env.localization.multilateration import TAG_NO_FIX, TAG_OK, fix_tags_2d, track_tags_2d
+from uwb_env.localization.multilateration import (
+    TAG_NO_FIX,
+    TAG_OK,
+    TAG_POOR_FIT,
+    fix_tags_2d,
+    tag_fit_rejected,
+    track_tags_2d,
+)
 
 
 def _scene(rng, S=64, N=4, M=3, sigma=0.05):
@@ -91,3 +98,53 @@ def test_a_tag_at_an_anchor_gets_a_fix_there():
                            zeros)
         off += step.status[0, 0] == TAG_OK and np.linalg.norm(step.positions[0, 0] - tag) > 1.0
     assert off == 0
+
+
+def test_fixes_the_ranges_reject_are_poor_fits_not_ok():
+    """A fix whose ranges its anchors cannot explain (here one range 2 m long, NLOS-like) is
+    reported TAG_POOR_FIT, not ok; with clean ranges the test fires at about its level (1e-3),
+    and the predicted anchor variance widens it (stale anchors are not poor fits)."""
+    rng = np.random.default_rng(3)
+    anchors, tags, _ = _scene(rng, S=400, N=6, M=2)
+    true = np.linalg.norm(tags[:, :, None] - anchors[:, None], axis=-1)
+    clean = true + rng.normal(0, 0.05, true.shape)
+    step = _step(anchors, tags.copy(), clean)
+    assert (step.status == TAG_POOR_FIT).mean() < 0.01
+    biased = clean.copy()
+    biased[:, :, 2] += 2.0
+    step = _step(anchors, tags.copy(), biased)
+    assert (step.status == TAG_POOR_FIT).mean() > 0.95
+    assert np.isfinite(step.positions).all()  # the least-squares position is kept
+    # anchors whose predicted error is larger than the bias explain it
+    S, N = anchors.shape[:2]
+    stale = fix_tags_2d(anchors, tags.copy(), biased, 0.05**2, np.full((S, N), 4.0), np.zeros((S, N)), None)
+    assert (stale.status == TAG_POOR_FIT).mean() < 0.01
+
+
+def test_tag_fit_test_any_dimension_matches_the_compiled_step():
+    rng = np.random.default_rng(4)
+    anchors, tags, _ = _scene(rng, S=200, N=5, M=3)
+    ranges = np.linalg.norm(tags[:, :, None] - anchors[:, None], axis=-1) + rng.normal(0, 0.05, (200, 3, 5))
+    ranges[:, :, 0] += rng.exponential(0.3, (200, 3))
+    ranges[rng.random(ranges.shape) < 0.1] = np.nan
+    pred = rng.uniform(0, 0.01, (200, 5))
+    step = fix_tags_2d(anchors, tags.copy(), ranges, 0.05**2, pred, np.zeros((200, 5)), None)
+    checked = step.status != TAG_NO_FIX
+    assert (step.status == TAG_POOR_FIT).sum() > 50  # both verdicts occur
+    for s in range(200):
+        rejected = tag_fit_rejected(anchors[s], step.positions[s], ranges[s], 0.05**2, pred[s])
+        np.testing.assert_array_equal(rejected[checked[s]], (step.status[s] == TAG_POOR_FIT)[checked[s]]
+                                      | ((step.status[s] == 1) & rejected)[checked[s]])
+
+
+def test_tag_fit_test_in_3d():
+    rng = np.random.default_rng(5)
+    anchors = rng.uniform(0, 10, (6, 3))
+    tags = rng.uniform(2, 8, (500, 3))
+    ranges = np.linalg.norm(tags[:, None] - anchors[None], axis=-1) + rng.normal(0, 0.05, (500, 6))
+    # at the true positions the chi-square has 6 dof, not the fit's 3: a loose check of the level
+    assert tag_fit_rejected(anchors, tags, ranges, 0.05**2, np.zeros(6)).mean() < 0.05
+    ranges[:, 1] += 1.5
+    assert tag_fit_rejected(anchors, tags, ranges, 0.05**2, np.zeros(6)).all()
+    ranges[:, 2:] = np.nan  # two ranges: below dim + 1, nothing to test
+    assert not tag_fit_rejected(anchors, tags, ranges, 0.05**2, np.zeros(6)).any()

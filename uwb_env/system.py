@@ -23,7 +23,14 @@ from uwb_env.features import anchor_features
 from uwb_env.localization import LocalizationError, calibrate_anchors, locate_tags, rigid_align
 from uwb_env.localization._tracking_kernel import residual_statistics
 from uwb_env.localization.batched_calibration import later_calibrations, symmetric_arrays
-from uwb_env.localization.multilateration import TAG_NO_FIX, check_mirror_3d, fix_tags_2d
+from uwb_env.localization.multilateration import (
+    TAG_NO_FIX,
+    TAG_OK,
+    TAG_POOR_FIT,
+    check_mirror_3d,
+    fix_tags_2d,
+    tag_fit_rejected,
+)
 from uwb_env.localization.relocation import relocate_anchor
 from uwb_env.measurements import pool_rounds
 from uwb_env.sim import RangeModel, World
@@ -447,7 +454,9 @@ class LocalizationSystem:
             n_ranges = np.isfinite(res).sum(axis=1)  # a tag without ranges keeps its NaN
             mean_sq = np.nansum(res * res, axis=1) / np.maximum(n_ranges, 1)
             rms = np.where(np.isfinite(rms) & (n_ranges > 0), np.sqrt(mean_sq), rms)
-        self.tag_status = np.where(np.isfinite(rms), status, TAG_NO_FIX).astype(np.int8)
+        # the 2D step's fit test: a fix whose ranges the anchors cannot explain is a poor fit
+        poor = (status == TAG_OK) & tag_fit_rejected(anchors, positions, ranges, self.range_std_m**2, pred_var)
+        self.tag_status = np.where(np.isfinite(rms), np.where(poor, TAG_POOR_FIT, status), TAG_NO_FIX).astype(np.int8)
         fixed = np.where(np.isfinite(rms)[:, None], positions, np.nan)
         return positions, rms, residual_statistics(anchors[None], fixed[None], ranges[None])
 

@@ -63,8 +63,8 @@ dict; read them from any one agent.
 | ``mean_tag_error_fixed_frame_m``, ``mean_anchor_error_fixed_frame_m`` | float | the same in the fixed frame, m |
 | ``rotation_error_rad`` | float | the paper's rotation error |
 | ``tag_errors_m`` | (n_tags,) float array | per tag error, m |
-| ``tag_status`` | (n_tags,) int array | 0 ok, 1 ambiguous (mirror fits too), 2 no fix |
-| ``n_tags_ambiguous`` | int | tags with status 1 |
+| ``tag_status`` | (n_tags,) int array | 0 ok, 1 ambiguous (mirror fits too), 2 no fix, 3 poor fit (ranges the anchors cannot explain) |
+| ``n_tags_ambiguous``, ``n_tags_poor_fit`` | int | tags with status 1 / 3 |
 | ``calibration_count``, ``anchor_round_count`` | int | team / per-anchor rounds finished |
 | ``time_calibrating_s``, ``time_s`` | float | channel time spent calibrating; episode time |
 | ``calibrating`` | bool | a round runs |
@@ -301,9 +301,11 @@ class UWBCalibrationParallelEnv(ParallelEnv, EzPickle):
             "calibration_chi2_per_dof": float(s.calibration_chi2_per_dof),
             "requests_ignored": report.requests_ignored if report else 0,
             "round_anchor": report.round_anchor if report else -1,
-            # per tag: 0 ok, 1 ambiguous (its mirror fits the ranges as well), 2 no fix
+            # per tag: 0 ok, 1 ambiguous (its mirror fits the ranges as well), 2 no fix, 3 poor
+            # fit (the ranges reject the fix at the fit test's level; the position is kept)
             "tag_status": s.tag_status.copy(),
             "n_tags_ambiguous": int((s.tag_status == 1).sum()),
+            "n_tags_poor_fit": int((s.tag_status == 3).sum()),
             "anchor_round_count": s.anchor_round_count,
             # flat float keys, zero at reset (no nested dicts: TorchRL and vector envs stack infos)
             **{f"reward_{k}": float(v) for k, v in {**_ZERO_TERMS, **terms}.items()},

@@ -16,7 +16,7 @@ from numba import njit
 
 from uwb_env.localization._lm_kernel import _weight
 
-TAG_OK, TAG_AMBIGUOUS, TAG_NO_FIX = 0, 1, 2
+TAG_OK, TAG_AMBIGUOUS, TAG_NO_FIX, TAG_POOR_FIT = 0, 1, 2, 3
 
 
 @njit(cache=True)
@@ -351,8 +351,25 @@ def _degenerate(anchors, s, ranges_row, px, py):
 
 
 @njit(cache=True)
+def _poor_fit(anchors, pred_var, s, ranges_row, px, py, v, fit_chi2):
+    """Whether the ranges reject the fix (px, py) at the fit test's level: their chi-square with
+    each range's variance v + pred_var / 2 above fit_chi2[measured ranges - 2]."""
+    total = 0.0
+    seen = 0
+    for k in range(len(ranges_row)):
+        r = ranges_row[k]
+        if r != r:
+            continue
+        dx, dy = px - anchors[s, k, 0], py - anchors[s, k, 1]
+        e = math.sqrt(dx * dx + dy * dy) - r
+        total += e * e / (v + 0.5 * pred_var[s, k])
+        seen += 1
+    return seen >= 3 and total > fit_chi2[seen - 2]
+
+
+@njit(cache=True)
 def tag_step_2d(anchors, previous, ranges, range_var, pred_var, cal_var, anchor_cov, use_cov, code, c, iterations,
-                restart_base_m, refit_iterations, margin_chi2, mirror_iterations):
+                restart_base_m, refit_iterations, margin_chi2, mirror_iterations, fit_chi2):
     """One step of tag fixing for every tag of every group (both envs: ``multilateration.fix_tags_2d``).
 
     anchors (S, N, 2) estimates; previous (S, M, 2) last fixes (NaN = none); ranges (S, M, N)
@@ -361,7 +378,10 @@ def tag_step_2d(anchors, previous, ranges, range_var, pred_var, cal_var, anchor_
     covariance (read if ``use_cov``). Per tag: ``iterations`` Gauss-Newton steps from its last
     fix; no fix, or an RMS residual above restart_base_m + 2 sqrt(max pred_var), gets the
     closed form refined by ``refit_iterations`` steps, kept if its residual is lower; then the
-    mirror check (range variance + mean(pred_var) / 2); then the residual statistics.
+    mirror check (range variance + mean(pred_var) / 2); then the fit test: a fix that is not
+    ambiguous but whose ranges' chi-square (each range's variance: range_var + pred_var / 2,
+    the anchor's predicted error along any line of sight) exceeds fit_chi2[measured - 2] is
+    TAG_POOR_FIT (ranges its anchors cannot explain); then the residual statistics.
 
     Returns positions (S, M, 2), rms (S, M) (NaN = no fix), status (S, M) int8, switched and
     refit (S, M) bool, tag_mean (S,), anchor_mean (S, N), any_fix (S,)."""
@@ -425,6 +445,8 @@ def tag_step_2d(anchors, previous, ranges, range_var, pred_var, cal_var, anchor_
                         err = e2 if math.isfinite(e2) else err
                     elif verdict == 2:
                         status[s, m] = TAG_AMBIGUOUS
+            if status[s, m] == TAG_OK and _poor_fit(anchors, pred_var, s, row, px, py, v, fit_chi2):
+                status[s, m] = TAG_POOR_FIT
             pos[s, m, 0], pos[s, m, 1] = px, py
             rms[s, m] = err
     tag_mean, anchor_mean, any_fix = residual_statistics(anchors, pos, ranges)

@@ -12,14 +12,17 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
+from scipy.special import chdtri
 
 from uwb_env.localization._lm_kernel import LOSS_CODES
 from uwb_env.localization._tracking_kernel import (
     TAG_AMBIGUOUS,
     TAG_NO_FIX,
     TAG_OK,
+    TAG_POOR_FIT,
     mirror_check_2d,
     tag_step_2d,
     track_2d,
@@ -321,7 +324,7 @@ class TagStep:
 
     positions: np.ndarray  # (S, M, 2), NaN = no fix
     rms_m: np.ndarray  # (S, M) RMS range residual, NaN = no fix
-    status: np.ndarray  # (S, M) int8: TAG_OK, TAG_AMBIGUOUS, TAG_NO_FIX
+    status: np.ndarray  # (S, M) int8: TAG_OK, TAG_AMBIGUOUS, TAG_NO_FIX, TAG_POOR_FIT
     switched: np.ndarray  # (S, M) bool: the fix was replaced by its mirror
     refit: np.ndarray  # (S, M) bool: solved again from the closed form
     tag_residual_m: np.ndarray  # (S,) mean RMS residual of the fixed tags
@@ -331,7 +334,7 @@ class TagStep:
 
 def fix_tags_2d(anchors, previous, ranges_m, range_var_m2, predicted_var_m2, calibration_var_m2,
                 anchor_covariance=None, loss="linear", f_scale=2.0, iterations=2, restart_residual_m=0.3,
-                refit_iterations=10, margin_chi2=10.83, mirror_iterations=3) -> TagStep:
+                refit_iterations=10, margin_chi2=10.83, mirror_iterations=3, fit_alpha=1e-3) -> TagStep:
     """Tag fixing of one step for both envs (one env: S = 1; the batched env: S copies), one
     compiled pass (``_tracking_kernel.tag_step_2d``):
 
@@ -347,7 +350,12 @@ def fix_tags_2d(anchors, previous, ranges_m, range_var_m2, predicted_var_m2, cal
     3. the mirror check (:func:`check_mirror_2d`, with the range variance plus half the mean
        predicted anchor variance): a fix the ranges reject for its mirror is replaced, one that
        fits as well as its mirror is ``TAG_AMBIGUOUS``;
-    4. the residual statistics of the fixes (:func:`~uwb_env.localization._tracking_kernel.residual_statistics`).
+    4. the fit test (:func:`tag_fit_thresholds`): any other fix whose ranges the anchors cannot
+       explain at level ``fit_alpha`` (their chi-square, each range's variance the range
+       variance + half the anchor's predicted error variance, beyond the chi-square quantile on
+       ranges - 2 dof) is ``TAG_POOR_FIT``: the least-squares position is kept (the best the
+       ranges give) but not reported as a plain fix;
+    5. the residual statistics of the fixes (:func:`~uwb_env.localization._tracking_kernel.residual_statistics`).
 
     Shapes: anchors (S, N, 2); previous (S, M, 2) (NaN = no fix yet); ranges_m (S, M, N) (NaN
     = missing); range_var_m2 scalar or (S,); predicted / calibration variances (S, N);
@@ -359,8 +367,38 @@ def fix_tags_2d(anchors, previous, ranges_m, range_var_m2, predicted_var_m2, cal
                       ranges_m, var, np.ascontiguousarray(predicted_var_m2, dtype=np.float64),
                       np.ascontiguousarray(calibration_var_m2, dtype=np.float64), cov, use_cov, code, c,
                       int(iterations), float(restart_residual_m), int(refit_iterations), float(margin_chi2),
-                      int(mirror_iterations))
+                      int(mirror_iterations), tag_fit_thresholds(ranges_m.shape[2], float(fit_alpha)))
     return TagStep(*out)
+
+
+def tag_fit_rejected(anchors, positions, ranges_m, range_var_m2, predicted_var_m2, fit_alpha=1e-3) -> np.ndarray:
+    """The tag fit test of :func:`fix_tags_2d` in any dimension, for one group: (M,) True where
+    a fix's ranges have a chi-square (each range's variance ``range_var_m2`` + the anchor's
+    ``predicted_var_m2`` / dim) beyond the quantile at 1 - ``fit_alpha`` on ranges - 2 dof.
+    anchors (N, dim), positions (M, dim) (NaN: not tested), ranges_m (M, N) (NaN = missing)."""
+    anchors = np.asarray(anchors, dtype=float)
+    dim = anchors.shape[1]
+    var = range_var_m2 + np.asarray(predicted_var_m2, dtype=float) / dim
+    res = np.linalg.norm(np.asarray(positions, dtype=float)[:, None, :] - anchors[None], axis=-1) - ranges_m
+    measured = np.isfinite(ranges_m)
+    chi2 = np.where(measured, res * res / var, 0.0).sum(axis=1)
+    seen = measured.sum(axis=1)
+    table = tag_fit_thresholds(anchors.shape[0], float(fit_alpha))
+    with np.errstate(invalid="ignore"):
+        return (seen >= dim + 1) & (chi2 > table[np.clip(seen - dim, 0, len(table) - 1)])
+
+
+@lru_cache(maxsize=64)
+def tag_fit_thresholds(n_anchors: int, alpha: float) -> np.ndarray:
+    """(n_anchors - 1,) chi-square quantiles at 1 - alpha, index = dof (ranges - 2 in 2D,
+    ranges - 3 in 3D; index 0 unused): the tag fit test's thresholds."""
+    if not 0.0 < alpha < 1.0:
+        raise ValueError(f"fit_alpha={alpha!r}: must be in (0, 1)")
+    table = np.full(max(n_anchors - 1, 1), np.inf)
+    dof = np.arange(1, len(table))
+    table[1:] = chdtri(dof, alpha)
+    table.setflags(write=False)
+    return table
 
 
 def _kernel_options(range_var_m2, anchor_covariance, loss, f_scale, groups: int) -> tuple:
@@ -382,7 +420,7 @@ def _kernel_options(range_var_m2, anchor_covariance, loss, f_scale, groups: int)
 
 
 # Per-tag verdicts of the tracker (``check_mirror_2d``).
-TAG_STATUS_NAMES = {TAG_OK: "ok", TAG_AMBIGUOUS: "ambiguous", TAG_NO_FIX: "no_fix"}
+TAG_STATUS_NAMES = {TAG_OK: "ok", TAG_AMBIGUOUS: "ambiguous", TAG_NO_FIX: "no_fix", TAG_POOR_FIT: "poor_fit"}
 
 
 def check_mirror_2d(anchors, positions, ranges_m, range_var_m2, anchor_covariance=None, loss="linear", f_scale=2.0,
