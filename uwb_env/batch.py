@@ -12,13 +12,15 @@ calibrations of all copies in one batched solve (``batched_calibration``, tested
 full solver; the single env's usual later rounds take it too); only what that solve hands back
 (missing pairs, thin layouts, pair rejection) goes to the full solver per copy.
 
+Later rounds of 3-4 anchors that fit poorly take the full solver's further steps batched too
+(``later_calibrations(poor_fit_prior_std_m=...)``: cold starts, pick, unfold; 0 of ~7,400 kept
+answers differ from the full solver's in ``tests/test_round_cohort.py``'s draws and two more
+generators); the ambiguous ones and those with a start that does not converge go back to it.
+
 Differences from the single env, by design: 2D only, the centralized ``calibrate`` action only;
-4-anchor later rounds that fit poorly keep the batched solve's answer where its alternative
-starts (MDS, single-anchor reflections) neither beat it nor reveal an ambiguity
-(``later_calibrations(poor_fit_prior_std_m=...)``, an approximation of the full solver the
-single env uses: ~0.1-0.3 % of them differ from its answer); episodes of all copies start and
-end together (same ``max_cycles``); the first calibration is one round (the single env pools
-more while the shape is ambiguous); one generator drives the batch (same seed, same batch).
+episodes of all copies start and end together (same ``max_cycles``); the first calibration is
+one round (the single env pools more while the shape is ambiguous); one generator drives the
+batch (same seed, same batch).
 Episode statistics match the single env's in distribution (tested with a two-sample KS test).
 """
 

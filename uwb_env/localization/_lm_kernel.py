@@ -322,7 +322,32 @@ def _team_covariance(xk, pi, pj, dist, sqrt_iv, column, code, c, out, bufs, inv,
 
 
 @njit(cache=True)
-def solve_teams_2d(start, ref, pi, pj, dist, sqrt_iv, code, c, max_iterations):
+def _lm_team(xk, pi, pj, dist, sqrt_iv, column, code, c, max_iterations):
+    """One team as the full solver's ``_Problem.solve`` does it (``pair_solver.solve_pair_ranges``
+    twice: the plain stage, 1e-3 sigma step tolerance, then for a robust ``code`` the robust
+    stage from there, 4x the budget, 1e-4 sigma), in place; True where the last stage converged."""
+    n_free = 0
+    for v in column:
+        n_free = max(n_free, v)
+    top = 0.0
+    far = 0.0
+    for p in range(len(dist)):
+        top = max(top, sqrt_iv[p])
+        far = max(far, abs(dist[p]))
+    floor = 1e-12 * far
+    xtol = max(1e-3 / top, floor)
+    x, _, _, _, _, _, status = lm_pairs(xk, pi, pj, column, n_free, dist, sqrt_iv, 0, 1.0, max_iterations,
+                                        xtol * xtol, 1e-12)
+    if code != 0:
+        xtol = max(1e-4 / top, floor)
+        x, _, _, _, _, _, status = lm_pairs(x, pi, pj, column, n_free, dist, sqrt_iv, code, c, 4 * max_iterations,
+                                            xtol * xtol, 1e-12)
+    xk[:, :] = x
+    return status == 1
+
+
+@njit(cache=True)
+def solve_teams_2d(start, ref, pi, pj, dist, sqrt_iv, code, c, max_iterations, damped=False):
     """Many 2D teams with the same pairs in one compiled loop (``batched_calibration``).
 
     Team k is put in the paper frame of ``start[k]`` about anchors (0, ``ref[k]``) (anchor 0
@@ -330,6 +355,8 @@ def solve_teams_2d(start, ref, pi, pj, dist, sqrt_iv, code, c, max_iterations):
     ``alignment.paper_frame`` would raise), solved by Gauss-Newton with the linear loss
     (``max_iterations``, step tolerance 1e-3 sigma), then, for a robust ``code``, by IRLS from
     there (4x the budget, 1e-4 sigma). start (K, n, 2), ref (K,), dist / sqrt_iv (K, P).
+    Undamped (default): a team whose step raises the cost is not ok (the full solver would
+    damp); ``damped``: Levenberg-Marquardt, the full solver's own iterations (``_lm_team``).
 
     Returns (x (K, n, 2) in the frame, ok (K,), residuals_m (K, P), chi2 (K,), max |z| (K,),
     robust cost (K,), covariance (K, 2n, 2n) in the frame with zeros on the fixed
@@ -392,12 +419,16 @@ def solve_teams_2d(start, ref, pi, pj, dist, sqrt_iv, code, c, max_iterations):
             r1 = start[k, i, 1] - start[k, 0, 1]
             xk[i, 0] = r0 * ex0 + r1 * ex1
             xk[i, 1] = sign * (-r0 * ex1 + r1 * ex0)
-        if not _gauss_newton_team(xk, pi, pj, dist[k], sqrt_iv[k], column, 0, 1.0, max_iterations, 1e-3, trial,
-                                  bufs):
-            continue
-        if code != 0 and not _gauss_newton_team(xk, pi, pj, dist[k], sqrt_iv[k], column, code, c,
-                                                4 * max_iterations, 1e-4, trial, bufs):
-            continue
+        if damped:
+            if not _lm_team(xk, pi, pj, dist[k], sqrt_iv[k], column, code, c, max_iterations):
+                continue
+        else:
+            if not _gauss_newton_team(xk, pi, pj, dist[k], sqrt_iv[k], column, 0, 1.0, max_iterations, 1e-3, trial,
+                                      bufs):
+                continue
+            if code != 0 and not _gauss_newton_team(xk, pi, pj, dist[k], sqrt_iv[k], column, code, c,
+                                                    4 * max_iterations, 1e-4, trial, bufs):
+                continue
         ok[k] = True
         _evaluate(xk, pi, pj, dist[k], sqrt_iv[k], z, bufs[1])
         total = 0.0

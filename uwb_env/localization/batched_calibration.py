@@ -19,10 +19,12 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-from scipy.special import chdtrc
+from scipy.special import chdtrc, chdtri
 
 from uwb_env.localization._lm_kernel import LOSS_CODES, solve_teams_2d
 from uwb_env.localization.alignment import rigid_align, rigid_align_batch
+from uwb_env.localization.calibration import trilaterate_initial
+from uwb_env.localization.errors import GeometryError
 from uwb_env.measurements import RangeMatrix
 
 
@@ -114,17 +116,12 @@ def later_calibrations(pairs: np.ndarray, dist: np.ndarray, var: np.ndarray, pri
     """Later calibrations of K complete 2D teams from arrays (``calibrate_with_priors``): the
     fits the verdict accepts (status 1); the other teams are handed back (status 0).
 
-    Poor fits: on one the full solver also solves from the ranges alone (MDS, trilateration),
-    unfolds single anchors (two passes), keeps the lowest cost plus prior chi-square and flags
-    the round ambiguous where the ranges alone preferred another shape. By default every poor
-    fit is handed back to it (the single env: its answers are the full solver's). With
-    ``poor_fit_prior_std_m`` (K, N) (the batched env, where 15-20 % of 4-anchor rounds fit
-    poorly and one full solve per copy in Python costs most of a step) poor fits with fewer
-    than 3 dof and gauge ``prior`` are solved here from the MDS start and single-anchor
-    reflections, and kept (status 2) unless one of them scores lower or fits the ranges alone
-    better as a different shape (then handed back: the full solver would pick or flag it). This
-    is an approximation of the full solver: a review's 20,000 rounds found answers 0.2-2.5 m
-    from its better minimum (from starts not tried here) in ~0.2 % of the poor fits."""
+    Poor fits: by default every poor fit is handed back to the full solver (the single env: its
+    answers are the full solver's). With ``poor_fit_prior_std_m`` (K, N) (the batched env, where
+    15-20 % of 4-anchor rounds fit poorly and one full solve per copy in Python costs most of a
+    step) the poor fits with fewer than 3 dof and gauge ``prior`` take the full solver's steps
+    here, batched (:func:`_poor_fit_steps`), and come back with its answer where these steps
+    reach it; the rest are handed back."""
     args = (loss, f_scale, gauge, max_iterations, fit_alpha, restart_sigmas)
     fast = poor_fit_prior_std_m is not None
     solved = _solve_teams(pairs, dist, var, prior, *args, accept_poor=fast)
@@ -134,38 +131,213 @@ def later_calibrations(pairs: np.ndarray, dist: np.ndarray, var: np.ndarray, pri
     if solved.dof >= 3 or gauge != "prior":  # the full solver would reject outliers / align about anchor 0
         solved.hand_back(poor)
         return solved
-    weight = 2.0 / poor_fit_prior_std_m[poor] ** 2  # dim / std^2, as the full solver's prior term
-
-    def score(sol: TeamSolutions, rows: np.ndarray) -> np.ndarray:
-        d2 = ((sol.positions - prior[poor][rows]) ** 2).sum(2)
-        return np.where(sol.status != STATUS_NONE, sol.cost + 0.5 * (d2 * weight[rows]).sum(1), np.inf)
-
-    idx = np.arange(len(poor))
-    mine = solved.subset(poor)
-    best = score(mine, idx)
-    base = solved.positions[poor]
-    # every alternative start of every poor team in one batched solve
-    starts = np.concatenate([_mds(pairs, dist[poor])[0], _reflections(base)])
-    reps = len(starts) // len(poor)
-    cands = _solve_teams(pairs, np.tile(dist[poor], (reps, 1)), np.tile(var[poor], (reps, 1)), starts, *args,
-                         accept_poor=True)
-    # each candidate was placed onto its own start; the full solver places every candidate onto
-    # the prior (rigid, reflection allowed) before scoring it against the prior
-    found = cands.status != STATUS_NONE
-    if found.any():
-        target = np.tile(prior[poor], (reps, 1, 1))[found]
-        rot, trans = rigid_align_batch(cands.positions[found], target)
-        cands.positions[found] = np.einsum("knj,kij->kni", cands.positions[found], rot) + trans[:, None]
-    beaten = (score(cands, np.tile(idx, reps)).reshape(reps, -1) < best - 1e-9).any(0)
-    # the cold (MDS) start fits the ranges alone better as a clearly different shape: the full
-    # solver, whose cold starts include it, flags the round ambiguous (its unfold reflections
-    # are judged by score only)
-    tol = 3.0 * np.sqrt(var[poor].max(1))
-    cold = cands.subset(np.arange(len(poor)))
-    apart = np.abs(cold.positions - base).max(axis=(1, 2)) > tol
-    ambiguous = (cold.status != STATUS_NONE) & (cold.chi2 < mine.chi2) & apart
-    solved.hand_back(poor[beaten | ambiguous])
+    _poor_fit_steps(solved, poor, pairs, dist, var, prior, poor_fit_prior_std_m, args)
     return solved
+
+
+def _poor_fit_steps(solved: TeamSolutions, poor: np.ndarray, pairs, dist, var, prior, prior_std, args) -> None:
+    """The full solver's answer to a later calibration whose solve from the prior fits poorly,
+    for the teams ``poor`` of ``solved`` (in place), with at most 2 dof (no outlier rejection):
+
+    1. solve from the ranges alone, trilateration and MDS (``calibration._cold_starts``), each
+       placed onto the prior (rigid, reflection allowed);
+    2. pick the lowest score, cost plus the prior's chi-square (``_Problem.select`` with a
+       prior); where the ranges alone (the lowest cost) prefer a clearly different shape with
+       a lower chi-square the full solver flags the round ambiguous: handed back;
+    3. a pick that fits is the answer; a poor one is unfolded (:func:`_unfold`, the full
+       solver's passes of single-anchor reflections).
+
+    Every start is solved with the full solver's iterations (damped, in the prior's gauge).
+    Where one of them does not converge here the full solver would still score it (it keeps
+    unconverged candidates): that team is handed back, as is an ambiguous one (the result
+    carries no ambiguity flag)."""
+    n = prior.shape[1]
+    weight = 2.0 / prior_std[poor] ** 2  # dim / std^2, as the full solver's prior term
+    target = prior[poor]
+    tol = 3.0 * np.sqrt(var[poor].max(1))  # ``_same_shape``'s tolerance
+    # every start is solved in the prior's gauge (anchor 0, the anchor farthest from it), as the
+    # full solver does: the covariance of a solution depends on the gauge it is computed in
+    far = np.argmax(np.linalg.norm(target - target[:, :1], axis=2), axis=1)
+
+    def candidates(starts: np.ndarray, rows: np.ndarray) -> tuple[TeamSolutions, np.ndarray, np.ndarray]:
+        """Solve ``starts`` (S, n, 2), start s for team ``rows[s]`` of ``poor``, each placed
+        onto its prior (rigid, reflection allowed) as the full solver scores it. Returns the
+        solutions, their scores (cost + the prior's chi-square) (S,) and (S,) True where a
+        finite start did not converge here (a candidate the full solver has and this solve
+        does not: its team goes back)."""
+        sol = _solve_in_gauge(pairs, dist[poor][rows], var[poor][rows], starts, far[rows], *args, accept_poor=True,
+                              damped=True, onto=target[rows])
+        lost = (sol.status == STATUS_NONE) & np.isfinite(starts).all(axis=(1, 2))
+        return sol, _scores(sol, target[rows], weight[rows]), lost
+
+    k = len(poor)
+    idx = np.arange(k)
+    # 1-2: the candidates in the full solver's order (prior, trilateration, MDS); ties keep the first
+    mine = solved.subset(poor)
+    cold, cold_scores, lost = candidates(np.concatenate([_trilateration_starts(pairs, dist[poor]),
+                                                         _mds(pairs, dist[poor])[0]]), np.tile(idx, 2))
+    unknown = lost.reshape(2, k).any(0)
+    cands = _stack([mine, cold])
+    scores = np.concatenate([_scores(mine, target, weight)[None], cold_scores.reshape(2, k)])  # (3, k)
+    pick = np.argmin(scores, axis=0) * k + idx
+    by_cost = np.argmin(np.where(cands.status != STATUS_NONE, cands.cost, np.inf).reshape(3, k), axis=0) * k + idx
+    apart = np.abs(cands.positions[pick] - cands.positions[by_cost]).max(axis=(1, 2)) > tol
+    ambiguous = (cands.chi2[by_cost] < cands.chi2[pick]) & apart
+    chosen = cands.subset(pick)
+    # 3: a poor pick is unfolded as the full solver does it
+    unknown |= _unfold(chosen, scores.min(0), candidates, pairs, var[poor], args[4])
+    for f in _ARRAY_FIELDS:
+        getattr(solved, f)[poor] = getattr(chosen, f)
+    solved.hand_back(poor[ambiguous | unknown])
+
+
+def _unfold(best: TeamSolutions, best_score: np.ndarray, candidates, pairs, var, fit_alpha) -> np.ndarray:
+    """``calibration._Problem.unfold`` for many teams, in place on ``best`` / ``best_score``:
+    up to two passes; in each, the anchors in decreasing order of their misfit (their pairs'
+    squared whitened residuals, at the pass's start), each mirrored across the line through its
+    two nearest others *in the current best* and solved, a lower score replacing the best at
+    once; a team stops when its best fits, or after a pass without a gain. The full solver's
+    shortcut too: no unfold where even the worst anchors' misfits could not bring the
+    chi-square under the fit threshold. Returns (K,) True where a reflection could not be
+    solved here (not converged: a candidate the full solver has and this solve does not)."""
+    k_teams, n = best.positions.shape[:2]
+    unknown = np.zeros(k_teams, dtype=bool)
+    active = np.flatnonzero(best.status == STATUS_POOR)
+    if n <= 3 or not len(active):  # ``_reflect_anchor``: no line through two others to mirror across
+        return unknown
+    top = min(n, 16)
+    incidence = np.zeros((len(pairs), n))
+    incidence[np.arange(len(pairs)), pairs[:, 0]] = 1.0
+    incidence[np.arange(len(pairs)), pairs[:, 1]] = 1.0
+
+    def misfit(rows):
+        return (best.residuals_m[rows] ** 2 / var[rows]) @ incidence
+
+    if best.dof > 0:
+        worst = -np.sort(-misfit(active), axis=1)[:, :top].sum(1)
+        explained = ~np.isfinite(best.chi2[active]) | (
+            2.0 * worst >= best.chi2[active] - chdtri(best.dof, fit_alpha))
+        active = active[explained]
+    for _ in range(2):
+        if not len(active):
+            break
+        order = np.argsort(-misfit(active), axis=1)[:, :top]
+        improved = np.zeros(len(active), dtype=bool)
+        nxt = np.zeros(len(active), dtype=int)  # the next position in ``order`` to try
+        live = np.ones(len(active), dtype=bool)  # positions left and no fit yet
+        while live.any():
+            # The reflections of one best are independent: solve every remaining one at once,
+            # and take the first (in misfit order) that scores lower, as the sequential loop
+            # would; the ones after it are solved again from the new best.
+            sel = np.flatnonzero(live)
+            counts = top - nxt[sel]
+            team = np.repeat(sel, counts)
+            pos = np.concatenate([np.arange(nxt[t], top) for t in sel])
+            rows = active[team]
+            starts, valid = _reflect_each(best.positions[rows], order[team, pos])
+            sol, score, lost = candidates(starts[valid], rows[valid])
+            gain = np.zeros(len(team), dtype=bool)
+            gain[valid] = score < best_score[rows[valid]] - 1e-9
+            full_lost = np.zeros(len(team), dtype=bool)
+            full_lost[valid] = lost
+            # per team: the first position that gains; what was tried before it counts as tried
+            first = np.full(len(sel), top)
+            np.minimum.at(first, np.searchsorted(sel, team[gain]), pos[gain])
+            tried = pos <= first[np.searchsorted(sel, team)]
+            np.logical_or.at(unknown, active[team[tried & full_lost]], True)
+            won = first < top
+            if won.any():
+                take = np.flatnonzero(gain & (pos == first[np.searchsorted(sel, team)]))  # one per winning team
+                solved_at = np.cumsum(valid) - 1
+                w_rows = rows[take]
+                for f in _ARRAY_FIELDS:
+                    getattr(best, f)[w_rows] = getattr(sol, f)[solved_at[take]]
+                best_score[w_rows] = score[solved_at[take]]
+                improved[sel[won]] = True
+            nxt[sel] = np.where(won, first + 1, top)
+            fits = np.zeros(len(sel), dtype=bool)
+            fits[won] = best.status[active[sel[won]]] == STATUS_OK
+            live[sel] = (nxt[sel] < top) & ~fits
+            done_fit = sel[fits]
+            improved[done_fit] = False  # a fitting team leaves the passes
+            live[done_fit] = False
+        active = active[improved]
+    return unknown
+
+
+def _reflect_each(x: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``calibration._reflect_anchor`` for many teams (T, N, 2), anchor k[t] of team t:
+    (starts (T, N, 2), valid (T,) False where the line through its two nearest is undefined)."""
+    t = np.arange(len(x))
+    d = np.linalg.norm(x - x[t, k][:, None], axis=2)
+    d[t, k] = np.inf
+    near = np.argsort(d, axis=1)[:, :2]
+    base = x[t, near[:, 0]]
+    tangent = x[t, near[:, 1]] - base
+    norm = np.linalg.norm(tangent, axis=1)
+    valid = norm >= 1e-9
+    normal = np.stack([-tangent[:, 1], tangent[:, 0]], 1) / np.where(valid, norm, 1.0)[:, None]
+    out = x.copy()
+    out[t, k] = x[t, k] - 2.0 * ((x[t, k] - base) * normal).sum(1)[:, None] * normal
+    return out, valid
+
+
+_ARRAY_FIELDS = ("positions", "covariance", "residuals_m", "chi2", "cost", "status")
+
+
+def _stack(parts: list[TeamSolutions]) -> TeamSolutions:
+    return TeamSolutions(*(np.concatenate([getattr(p, f) for p in parts]) for f in _ARRAY_FIELDS), parts[0].dof)
+
+
+def _scores(sol: TeamSolutions, target: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """What the full solver's starts compete on: cost + 0.5 * sum(weight * |x - prior|^2)
+    (solutions already placed onto the prior); inf where not solved."""
+    d2 = ((sol.positions - target) ** 2).sum(2)
+    return np.where(sol.status != STATUS_NONE, sol.cost + 0.5 * (d2 * weight).sum(1), np.inf)
+
+
+def _trilateration_starts(pairs: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """(K, n, 2) the full solver's trilateration start (``calibration._trilaterate_2d``) of
+    each complete matrix, for all at once; NaN where it raises (the solve hands a NaN start
+    back): anchors 0 and 1 closer than 1e-3 of the largest range, or every anchor on their line."""
+    k_teams, n = dist.shape[0], int(pairs.max()) + 1
+    full = np.zeros((k_teams, n, n))
+    full[:, pairs[:, 0], pairs[:, 1]] = dist
+    full[:, pairs[:, 1], pairs[:, 0]] = dist
+    t = np.arange(k_teams)
+    d01 = full[:, 0, 1]
+    scale = full.max(axis=(1, 2))
+    bad = ~(d01 >= 1e-3 * scale)
+    d01 = np.where(bad, 1.0, d01)[:, None]
+    d0sq = full[:, 0] * full[:, 0]
+    xs = (d0sq - full[:, 1] * full[:, 1] + d01 * d01) / (2 * d01)
+    ys = np.sqrt(np.maximum(d0sq - xs * xs, 0.0))
+    xs[:, 0], xs[:, 1] = 0.0, d01[:, 0]
+    ys[:, :2] = 0.0
+    bad |= ~(ys[:, 2:].max(1) >= 1e-6 * scale)
+    if n > 3:  # the mirror candidate that better fits the range to the anchor farthest off the axis
+        ref = 2 + np.argmax(ys[:, 2:], axis=1)
+        dx = xs - xs[t, ref][:, None]
+        y_ref, r_ref = ys[t, ref][:, None], full[t, ref]
+        flip = np.abs(np.hypot(dx, ys + y_ref) - r_ref) < np.abs(np.hypot(dx, ys - y_ref) - r_ref)
+        flip[:, :2] = False
+        flip[t, ref] = False
+        ys[flip] *= -1.0
+    if n > 4:  # second pass: the sign that best fits the ranges to all others as placed
+        placed = xs + 1j * ys
+        up = xs + 1j * np.abs(ys)
+        diag = np.arange(n)
+        misfit_up = np.abs(up[:, :, None] - placed[:, None, :]) - full
+        misfit_down = np.abs(up.conj()[:, :, None] - placed[:, None, :]) - full
+        misfit_up[:, diag, diag] = 0.0
+        misfit_down[:, diag, diag] = 0.0
+        sign = np.where((misfit_down**2).sum(2) < (misfit_up**2).sum(2), -1.0, 1.0)
+        sign[:, :2] = 1.0
+        sign[t, ref] = 1.0
+        ys = np.abs(ys) * sign
+    out = np.stack([xs, ys], axis=2)
+    out[bad] = np.nan
+    return out
 
 
 def _mds(pairs: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -277,10 +449,11 @@ def _solve_teams(pairs, dist, var, prior, loss, f_scale, gauge, max_iterations, 
 
 
 def _solve_in_gauge(pairs, dist, var, prior, ref, loss, f_scale, gauge, max_iterations, fit_alpha, restart_sigmas,
-                 accept_poor=False) -> TeamSolutions:
+                 accept_poor=False, damped=False, onto=None) -> TeamSolutions:
     """One compiled solve of every team from ``prior`` in the gauge (anchor 0, anchor ref[k])
     (``_lm_kernel.solve_teams_2d``), the fit verdict, and the gauge's placement; ``accept_poor``:
-    converged fits the verdict rejects come back as poor instead of handed back."""
+    converged fits the verdict rejects come back as poor instead of handed back; ``onto``
+    (gauge ``prior``): the positions the solutions are placed onto, if not their starts."""
     k_teams, n, dim = prior.shape
     i = np.ascontiguousarray(pairs[:, 0], dtype=np.int64)
     j = np.ascontiguousarray(pairs[:, 1], dtype=np.int64)
@@ -288,7 +461,7 @@ def _solve_in_gauge(pairs, dist, var, prior, ref, loss, f_scale, gauge, max_iter
     x, ok, res, chi2, zmax, cost, cov, good = solve_teams_2d(
         np.ascontiguousarray(prior, dtype=np.float64), np.ascontiguousarray(ref, dtype=np.int64), i, j,
         np.ascontiguousarray(dist, dtype=np.float64), np.ascontiguousarray(sqrt_iv, dtype=np.float64),
-        LOSS_CODES[loss], float(f_scale), int(max_iterations))
+        LOSS_CODES[loss], float(f_scale), int(max_iterations), bool(damped))
     dof = len(pairs) - (n * dim - 3)
     with np.errstate(invalid="ignore"):
         p_value = chdtrc(dof, chi2) if dof > 0 else np.ones(k_teams)
@@ -310,7 +483,7 @@ def _solve_in_gauge(pairs, dist, var, prior, ref, loss, f_scale, gauge, max_iter
                 positions[k] = xs[r] @ rot.T + trans
                 cov[k] = _rotate(cs[r][None], rot[None], n, dim)[0]
         else:
-            rot, trans = rigid_align_batch(xs, prior[rows])
+            rot, trans = rigid_align_batch(xs, (prior if onto is None else onto)[rows])
             positions[rows] = np.einsum("knj,kij->kni", xs, rot) + trans[:, None]
             cov[rows] = _rotate(cs, rot, n, dim)
     return TeamSolutions(positions, cov, res, chi2, cost, status, dof)
