@@ -276,12 +276,13 @@ class LocalizationSystem:
         try:
             matrix = self.world.round_correction.correct_matrix(finished.result())  # hardware: raises on failure
             matrix = self._to_round_midpoint(matrix, finished)
-            # the usual round (2D, every pair, a fit the verdict accepts): the batched env's
-            # compiled solve for a team of one (the same answer; tested against the full solver);
-            # whatever it hands back goes to the full solver's starts and checks
-            result = self._later_calibration_compiled(matrix, est_mid) if self.dim == 2 else None
+            # the usual round (2D, every pair): the batched env's compiled solve for a team of
+            # one, its poor fits of 3-4 anchors taken through the full solver's further steps
+            # batched (the same answers; tested against the full solver); whatever it hands
+            # back goes to the full solver's starts and checks
+            prior_std = np.sqrt(np.maximum(self.predicted_anchor_var_m2(), self.range_std_m**2))
+            result = self._later_calibration_compiled(matrix, est_mid, prior_std) if self.dim == 2 else None
             if result is None:
-                prior_std = np.sqrt(np.maximum(self.predicted_anchor_var_m2(), self.range_std_m**2))
                 result = calibrate_anchors(
                     matrix, dim=self.dim, prior=est_mid, gauge=solver.gauge, loss=solver.loss,
                     f_scale=solver.f_scale_sigmas, range_std_m=self.range_std_m, prior_std_m=prior_std,
@@ -294,15 +295,16 @@ class LocalizationSystem:
         self._apply_calibration(result, self.world.anchors_est - est_mid, path.midpoint_drift())
         return None
 
-    def _later_calibration_compiled(self, matrix, est_mid: np.ndarray):
-        """``batched_calibration.later_calibrations`` for this team alone: its result, or None
-        where the full solver would do more (a missing pair, a rejected fit it can work on)."""
+    def _later_calibration_compiled(self, matrix, est_mid: np.ndarray, prior_std: np.ndarray):
+        """``batched_calibration.later_calibrations`` for this team alone, as the batched env
+        calls it: its result, or None where the full solver would do more (a missing pair, a
+        rejected fit it can work on, an ambiguous shape)."""
         complete, pairs, dist, var = symmetric_arrays(matrix.mean_m[None], matrix.count[None], self.range_std_m)
         if not complete[0]:
             return None
         solver = self.config.solver
         solved = later_calibrations(pairs, dist, var, est_mid[None], solver.loss, solver.f_scale_sigmas,
-                                    solver.gauge)
+                                    solver.gauge, poor_fit_prior_std_m=prior_std[None])
         return solved.result(0)
 
     def _record_verdict(self, result) -> None:
