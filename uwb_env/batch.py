@@ -334,7 +334,7 @@ class BatchedSystem:
         step = fix_tags_2d(anchors, previous, ranges, self.range_std_m**2, self.predicted_anchor_var_m2()[rows],
                            self.calibration_var_m2[rows], self.anchor_cov[rows] if solver.use_anchor_covariance
                            else None, solver.loss, solver.f_scale_sigmas, solver.tag_iterations,
-                           solver.tag_restart_residual_m, refit_iterations=20 if cold else 10)
+                           solver.tag_restart_residual_m)
         pos = step.positions
         self.tag_status[rows] = step.status
         ok = np.isfinite(pos).all(axis=2)

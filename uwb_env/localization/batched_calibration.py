@@ -23,8 +23,6 @@ from scipy.special import chdtrc, chdtri
 
 from uwb_env.localization._lm_kernel import LOSS_CODES, solve_teams_2d
 from uwb_env.localization.alignment import rigid_align, rigid_align_batch
-from uwb_env.localization.calibration import trilaterate_initial
-from uwb_env.localization.errors import GeometryError
 from uwb_env.measurements import RangeMatrix
 
 
@@ -152,6 +150,10 @@ def _poor_fit_steps(solved: TeamSolutions, poor: np.ndarray, pairs, dist, var, p
     unconverged candidates): that team is handed back, as is an ambiguous one (the result
     carries no ambiguity flag)."""
     n = prior.shape[1]
+    loss, f_scale, gauge, max_iterations, fit_alpha, _ = args
+    # the full solver's candidates fit by the p-value alone (``restart_sigmas`` only decides
+    # whether it restarts, which a poor fit here already did)
+    args = (loss, f_scale, gauge, max_iterations, fit_alpha, np.inf)
     weight = 2.0 / prior_std[poor] ** 2  # dim / std^2, as the full solver's prior term
     target = prior[poor]
     tol = 3.0 * np.sqrt(var[poor].max(1))  # ``_same_shape``'s tolerance
@@ -174,9 +176,16 @@ def _poor_fit_steps(solved: TeamSolutions, poor: np.ndarray, pairs, dist, var, p
     idx = np.arange(k)
     # 1-2: the candidates in the full solver's order (prior, trilateration, MDS); ties keep the first
     mine = solved.subset(poor)
-    cold, cold_scores, lost = candidates(np.concatenate([_trilateration_starts(pairs, dist[poor]),
-                                                         _mds(pairs, dist[poor])[0]]), np.tile(idx, 2))
-    unknown = lost.reshape(2, k).any(0)
+    if solved.dof > 0:
+        with np.errstate(invalid="ignore"):
+            mine.status[chdtrc(solved.dof, mine.chi2) >= fit_alpha] = STATUS_OK
+    tri = _trilateration_starts(pairs, dist[poor])
+    mds, top = _mds(pairs, dist[poor])
+    mds[~(top[:, 1] > 1e-9 * top[:, 0])] = np.nan  # ``classical_mds``: a flat start is no start
+    cold, cold_scores, lost = candidates(np.concatenate([tri, mds]), np.tile(idx, 2))
+    # no cold start at all: the full solver lifts a flat MDS start (``mds+lift``): handed back
+    flat = np.isnan(tri).any(axis=(1, 2)) & np.isnan(mds).any(axis=(1, 2))
+    unknown = lost.reshape(2, k).any(0) | flat
     cands = _stack([mine, cold])
     scores = np.concatenate([_scores(mine, target, weight)[None], cold_scores.reshape(2, k)])  # (3, k)
     pick = np.argmin(scores, axis=0) * k + idx

@@ -480,7 +480,10 @@ class _Problem:
                 start = _reflect_anchor(best.x, int(k))
                 if start is None:
                     continue
-                cand = self.solve(refs, start, best.name + "+unfold", best.keep)
+                try:
+                    cand = self.solve(refs, start, best.name + "+unfold", best.keep)
+                except GeometryError:  # the mirrored shape is collinear (cannot be put in the gauge): skip it
+                    continue
                 tried += 1
                 if self.score(cand) < self.score(best) - 1e-9:
                     best, improved = cand, True
