@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from uwb_env.localization._alignment_kernel import FRAME_COINCIDENT, FRAME_OK, paper_frame_2d, rigid_align_2d
+from uwb_env.localization._alignment_kernel import (
+    FRAME_COINCIDENT,
+    FRAME_OK,
+    paper_frame_2d,
+    rigid_align_2d,
+    rigid_align_batch_2d,
+)
 from uwb_env.localization.errors import GeometryError
 
 
@@ -88,25 +94,13 @@ def rigid_align_batch(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarra
     f / 2). For a non-singular H that is the SVD's U V^T; for a singular one (collinear or
     coincident points) a rotation and a reflection fit equally well and this picks the rotation.
     A batched SVD of 2 x 2 matrices costs ~5x more (one LAPACK call each). Non-finite points give
-    a NaN rotation."""
+    a NaN rotation. In 3D a batched SVD."""
+    if source.shape[2] == 2:  # compiled (``_alignment_kernel.rigid_align_batch_2d``): one loop for all sets
+        return rigid_align_batch_2d(np.ascontiguousarray(source, dtype=np.float64),
+                                    np.ascontiguousarray(target, dtype=np.float64))
     mu_s, mu_t = source.mean(1), target.mean(1)
-    s, t = source - mu_s[:, None], target - mu_t[:, None]
-    if source.shape[2] != 2:
-        u, _, vt = np.linalg.svd(np.einsum("kni,knj->kij", t, s))
-        rot = u @ vt
-        return rot, mu_t - np.einsum("kij,kj->ki", rot, mu_s)
-    h00, h01 = (t[..., 0] * s[..., 0]).sum(1), (t[..., 0] * s[..., 1]).sum(1)
-    h10, h11 = (t[..., 1] * s[..., 0]).sum(1), (t[..., 1] * s[..., 1]).sum(1)
-    proper = h00 * h11 - h01 * h10 >= 0.0
-    a = np.where(proper, h00 + h11, h00 - h11)
-    b = np.where(proper, h10 - h01, h01 + h10)
-    norm = np.hypot(a, b)
-    safe = np.where(norm > 0.0, norm, 1.0)
-    cos, sin = np.where(norm > 0.0, a / safe, 1.0), np.where(norm > 0.0, b / safe, 0.0)
-    rot = np.empty((len(source), 2, 2))
-    rot[:, 0, 0], rot[:, 0, 1] = cos, np.where(proper, -sin, sin)
-    rot[:, 1, 0], rot[:, 1, 1] = sin, np.where(proper, cos, -cos)
-    rot[~np.isfinite(h00 + h01 + h10 + h11)] = np.nan
+    u, _, vt = np.linalg.svd(np.einsum("kni,knj->kij", target - mu_t[:, None], source - mu_s[:, None]))
+    rot = u @ vt
     return rot, mu_t - np.einsum("kij,kj->ki", rot, mu_s)
 
 
