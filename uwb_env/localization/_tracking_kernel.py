@@ -113,14 +113,18 @@ def _chi2(anchors, s, ranges_row, px, py, var):
     total = 0.0
     seen = 0
     for k in range(len(ranges_row)):
-        r = ranges_row[k]
-        if r != r:
-            continue
-        dx, dy = px - anchors[s, k, 0], py - anchors[s, k, 1]
-        e = math.sqrt(dx * dx + dy * dy) - r
-        total += e * e
-        seen += 1
+        e = _range_residual(anchors, s, k, ranges_row[k], px, py)
+        if e == e:  # a missing range gives NaN
+            total += e * e
+            seen += 1
     return total / var, seen
+
+
+@njit(cache=True)
+def _range_residual(anchors, s, k, r, px, py):
+    """Fitted minus measured range to anchor k of group s (NaN where the range is missing)."""
+    dx, dy = px - anchors[s, k, 0], py - anchors[s, k, 1]
+    return math.sqrt(dx * dx + dy * dy) - r
 
 
 @njit(cache=True)
@@ -357,13 +361,10 @@ def _poor_fit(anchors, pred_var, s, ranges_row, px, py, v, fit_chi2):
     total = 0.0
     seen = 0
     for k in range(len(ranges_row)):
-        r = ranges_row[k]
-        if r != r:
-            continue
-        dx, dy = px - anchors[s, k, 0], py - anchors[s, k, 1]
-        e = math.sqrt(dx * dx + dy * dy) - r
-        total += e * e / (v + 0.5 * pred_var[s, k])
-        seen += 1
+        e = _range_residual(anchors, s, k, ranges_row[k], px, py)
+        if e == e:
+            total += e * e / (v + 0.5 * pred_var[s, k])
+            seen += 1
     return seen >= 3 and total > fit_chi2[seen - 2]
 
 
