@@ -63,8 +63,8 @@ dict; read them from any one agent.
 | ``mean_tag_error_fixed_frame_m``, ``mean_anchor_error_fixed_frame_m`` | float | the same in the fixed frame, m |
 | ``rotation_error_rad`` | float | the paper's rotation error |
 | ``tag_errors_m`` | (n_tags,) float array | per tag error, m |
-| ``tag_status`` | (n_tags,) int array | 0 ok, 1 ambiguous (mirror fits too), 2 no fix, 3 poor fit (ranges the anchors cannot explain) |
-| ``n_tags_ambiguous``, ``n_tags_poor_fit`` | int | tags with status 1 / 3 |
+| ``tag_status`` | (n_tags,) int array | 0 ok, 1 ambiguous (mirror fits too), 2 no fix, 3 poor fit |
+| ``n_tags_ambiguous``, ``n_tags_poor_fit`` | int | tags with status 1 / 3 (3: ranges the anchors cannot explain) |
 | ``calibration_count``, ``anchor_round_count`` | int | team / per-anchor rounds finished |
 | ``time_calibrating_s``, ``time_s`` | float | channel time spent calibrating; episode time |
 | ``calibrating`` | bool | a round runs |

@@ -149,7 +149,6 @@ def _poor_fit_steps(solved: TeamSolutions, poor: np.ndarray, pairs, dist, var, p
     Where one of them does not converge here the full solver would still score it (it keeps
     unconverged candidates): that team is handed back, as is an ambiguous one (the result
     carries no ambiguity flag)."""
-    n = prior.shape[1]
     loss, f_scale, gauge, max_iterations, fit_alpha, _ = args
     # the full solver's candidates fit by the p-value alone (``restart_sigmas`` only decides
     # whether it restarts, which a poor fit here already did)

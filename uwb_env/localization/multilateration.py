@@ -374,7 +374,7 @@ def fix_tags_2d(anchors, previous, ranges_m, range_var_m2, predicted_var_m2, cal
 def tag_fit_rejected(anchors, positions, ranges_m, range_var_m2, predicted_var_m2, fit_alpha=1e-3) -> np.ndarray:
     """The tag fit test of :func:`fix_tags_2d` in any dimension, for one group: (M,) True where
     a fix's ranges have a chi-square (each range's variance ``range_var_m2`` + the anchor's
-    ``predicted_var_m2`` / dim) beyond the quantile at 1 - ``fit_alpha`` on ranges - 2 dof.
+    ``predicted_var_m2`` / dim) beyond the quantile at 1 - ``fit_alpha`` on ranges - dim dof.
     anchors (N, dim), positions (M, dim) (NaN: not tested), ranges_m (M, N) (NaN = missing)."""
     anchors = np.asarray(anchors, dtype=float)
     dim = anchors.shape[1]
