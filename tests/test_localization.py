@@ -242,6 +242,22 @@ def test_planar_rigid_align_closed_form_equals_the_svd(rng):
         rigid_align(np.full((3, 2), np.nan), np.zeros((3, 2)))
 
 
+def test_planar_rigid_align_edge_cases_behave_as_numpy_indexing_and_errors(rng):
+    """The compiled 2D path keeps the numpy definitions at the edges (found by a review):
+    a negative pivot counts from the end, an out-of-range pivot or reference is an IndexError
+    (not an out-of-bounds read), weights summing to zero are numpy's LinAlgError."""
+    x = rng.normal(size=(5, 2))
+    y = x @ np.array([[0.0, -1.0], [1.0, 0.0]]).T + 1.0 + 0.05 * rng.normal(size=(5, 2))
+    rot, trans = rigid_align(x, y, pivot=-1)
+    np.testing.assert_allclose(x[4] @ rot.T + trans, y[4], atol=1e-12)  # the last point maps exactly
+    with pytest.raises(IndexError):
+        rigid_align(x, y, pivot=5)
+    with pytest.raises(IndexError):
+        paper_frame(x, (0, 7))
+    with pytest.raises(np.linalg.LinAlgError):
+        rigid_align(x, y, weights=np.zeros(5))
+
+
 def test_planar_paper_frame_rules(rng):
     x = rng.normal(size=(5, 2)) * 4.0
     rot, trans = paper_frame(x, (1, 3))

@@ -37,8 +37,12 @@ def rigid_align(
     source = np.asarray(source, dtype=float)
     target = np.asarray(target, dtype=float)
     w = np.ones(len(source)) if weights is None else np.asarray(weights, dtype=float)
-    if source.ndim == 2 and source.shape[1] == 2 and target.shape == source.shape and w.shape == (len(source),):
-        rot, trans = rigid_align_2d(source, target, w, -1 if pivot is None else int(pivot), bool(allow_reflection))
+    n = len(source)
+    if pivot is not None and not -n <= int(pivot) < n:
+        raise IndexError(f"pivot={pivot!r}: out of range for {n} points")
+    if source.ndim == 2 and source.shape[1] == 2 and target.shape == source.shape and w.shape == (n,) \
+            and n > 0 and w.sum() > 0:
+        rot, trans = rigid_align_2d(source, target, w, -1 if pivot is None else int(pivot) % n, bool(allow_reflection))
         if np.isfinite(rot).all() and np.isfinite(trans).all():
             return rot, trans
         # non-finite points or weights summing to zero: numpy's error, as before
@@ -95,7 +99,7 @@ def rigid_align_batch(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarra
     coincident points) a rotation and a reflection fit equally well and this picks the rotation.
     A batched SVD of 2 x 2 matrices costs ~5x more (one LAPACK call each). Non-finite points give
     a NaN rotation. In 3D a batched SVD."""
-    if source.shape[2] == 2:  # compiled (``_alignment_kernel.rigid_align_batch_2d``): one loop for all sets
+    if source.shape[2] == 2 and source.shape[1] > 0:  # compiled: one loop for all sets
         return rigid_align_batch_2d(np.ascontiguousarray(source, dtype=np.float64),
                                     np.ascontiguousarray(target, dtype=np.float64))
     mu_s, mu_t = source.mean(1), target.mean(1)
@@ -120,8 +124,8 @@ def paper_frame(points: np.ndarray, refs: tuple[int, ...] | None = None) -> tupl
     points = np.asarray(points, dtype=float)
     dim = points.shape[1]
     refs = frame_refs(points) if refs is None else refs
-    if dim == 2 and np.isfinite(points).all():
-        rot, trans, code = paper_frame_2d(points, int(refs[0]), int(refs[1]))
+    if dim == 2 and np.isfinite(points).all() and all(-len(points) <= int(r) < len(points) for r in refs[:2]):
+        rot, trans, code = paper_frame_2d(points, int(refs[0]) % len(points), int(refs[1]) % len(points))
         if code == FRAME_OK:
             return rot, trans
         if code == FRAME_COINCIDENT:

@@ -261,7 +261,7 @@ def calibrate_anchors(
         buildup = _buildup_starts(problem)
         best, ambiguous = problem.add_starts(
             refs, candidates, buildup + _random_smacof_starts(problem, RANDOM_STARTS), prior, best, ambiguous)
-        if not buildup:
+        if not buildup and prior is None:
             # No placement order: the random starts are the whole search, and a basin reached
             # from one of them may not be the lowest (noise-free 3D graphs, 12-15 anchors, 1-6
             # dof: 4 of ~2,400 came back ok 4-24 m off, with fits the noise could explain). Draw
@@ -821,9 +821,12 @@ def _random_smacof_starts(problem: _Problem, count: int, skip: int = 0) -> list[
 
 
 def _basin_hits(problem: _Problem, candidates: list[_Candidate], best: _Candidate) -> int:
-    """How many converged candidates ended in ``best``'s shape (``_same_shape``'s tolerance)."""
+    """How many converged random-start candidates (``smacof-random``, ``best`` included if it is
+    one) ended in ``best``'s shape (``_same_shape``'s tolerance): the deterministic starts often
+    share a basin with each other and are not independent evidence."""
     tol = 3.0 * float(np.sqrt(problem.var.max()))
-    return sum(bool(c.out.converged and _same_shape(c.x, best.x, tol)) for c in candidates)
+    return sum(bool(c.name == "smacof-random" and c.out.converged and _same_shape(c.x, best.x, tol))
+               for c in candidates)
 
 
 def _lifted_mds(full: np.ndarray, dim: int = 3) -> np.ndarray:
