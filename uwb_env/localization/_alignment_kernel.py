@@ -16,11 +16,27 @@ FRAME_OK, FRAME_COINCIDENT, FRAME_COLLINEAR = 0, 1, 2
 
 
 @njit(cache=True)
+def _rotation_from_h(h00, h01, h10, h11, allow_reflection, rot):
+    """The orthogonal 2 x 2 matrix maximizing trace(R^T H) into ``rot``: the rotation by the
+    angle of (H00 + H11, H10 - H01), or (reflections allowed, det H < 0) the reflection
+    [[cos f, sin f], [sin f, -cos f]] with f the angle of (H00 - H11, H01 + H10). A zero
+    vector (singular H) gives the identity; a non-finite H a NaN matrix."""
+    proper = not allow_reflection or h00 * h11 - h01 * h10 >= 0.0
+    a = h00 + h11 if proper else h00 - h11
+    b = h10 - h01 if proper else h01 + h10
+    norm = math.hypot(a, b)
+    c, s = (a / norm, b / norm) if norm > 0.0 else (1.0, 0.0)
+    if not math.isfinite(h00 + h01 + h10 + h11):
+        c = s = np.nan
+    rot[0, 0], rot[1, 0] = c, s
+    rot[0, 1], rot[1, 1] = (-s, c) if proper else (s, -c)
+
+
+@njit(cache=True)
 def rigid_align_2d(source, target, w, pivot, allow_reflection):
     """``alignment.rigid_align`` for (n, 2) points in closed form: with H the weighted
-    cross-covariance, the rotation by atan2(H10 - H01, H00 + H11) maximizes trace(R^T H) over
-    rotations, the reflection [[cos f, sin f], [sin f, -cos f]] with f = atan2(H01 + H10,
-    H00 - H11) over reflections; with reflections allowed the better of the two (the sign of
+    cross-covariance, the rotation or reflection maximizing trace(R^T H)
+    (``_rotation_from_h``; with reflections allowed the better of the two, by the sign of
     det H). Equal to the SVD's U V^T for a non-singular H; for a singular one (collinear points)
     both fit equally and the rotation is returned. (rot (2, 2), trans (2,))."""
     n = source.shape[0]
@@ -45,14 +61,7 @@ def rigid_align_2d(source, target, w, pivot, allow_reflection):
         h10 += t1 * s0
         h11 += t1 * s1
     rot = np.empty((2, 2))
-    if allow_reflection and h00 * h11 - h01 * h10 < 0.0:
-        f = math.atan2(h01 + h10, h00 - h11)
-        c, s = math.cos(f), math.sin(f)
-        rot[0, 0], rot[0, 1], rot[1, 0], rot[1, 1] = c, s, s, -c
-    else:
-        a = math.atan2(h10 - h01, h00 + h11)
-        c, s = math.cos(a), math.sin(a)
-        rot[0, 0], rot[0, 1], rot[1, 0], rot[1, 1] = c, -s, s, c
+    _rotation_from_h(h00, h01, h10, h11, bool(allow_reflection), rot)
     trans = np.empty(2)
     trans[0] = mt0 - (rot[0, 0] * ms0 + rot[0, 1] * ms1)
     trans[1] = mt1 - (rot[1, 0] * ms0 + rot[1, 1] * ms1)
@@ -116,15 +125,7 @@ def rigid_align_batch_2d(source, target):
             h01 += t0 * s1
             h10 += t1 * s0
             h11 += t1 * s1
-        proper = h00 * h11 - h01 * h10 >= 0.0
-        a = h00 + h11 if proper else h00 - h11
-        b = h10 - h01 if proper else h01 + h10
-        norm = math.hypot(a, b)
-        c, s = (a / norm, b / norm) if norm > 0.0 else (1.0, 0.0)
-        if not math.isfinite(h00 + h01 + h10 + h11):
-            c = s = np.nan
-        rot[k, 0, 0], rot[k, 1, 0] = c, s
-        rot[k, 0, 1], rot[k, 1, 1] = (-s, c) if proper else (s, -c)
+        _rotation_from_h(h00, h01, h10, h11, True, rot[k])
         trans[k, 0] = mt0 - (rot[k, 0, 0] * ms0 + rot[k, 0, 1] * ms1)
         trans[k, 1] = mt1 - (rot[k, 1, 0] * ms0 + rot[k, 1, 1] * ms1)
     return rot, trans

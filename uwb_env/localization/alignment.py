@@ -45,7 +45,7 @@ def rigid_align(
         rot, trans = rigid_align_2d(source, target, w, -1 if pivot is None else int(pivot) % n, bool(allow_reflection))
         if np.isfinite(rot).all() and np.isfinite(trans).all():
             return rot, trans
-        # non-finite points or weights summing to zero: numpy's error, as before
+        # non-finite points: numpy's error, as before
     if pivot is None:
         mu_s = (w[:, None] * source).sum(0) / w.sum()
         mu_t = (w[:, None] * target).sum(0) / w.sum()

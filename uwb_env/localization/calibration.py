@@ -267,12 +267,12 @@ def calibrate_anchors(
             # dof: 4 of ~2,400 came back ok 4-24 m off, with fits the noise could explain). Draw
             # more until the best shape has been reached from CONFIRM_STARTS starts; a shape
             # not confirmed within MAX_RANDOM_STARTS is reported ambiguous.
-            drawn = RANDOM_STARTS
-            while _basin_hits(problem, candidates, best) < CONFIRM_STARTS and drawn < MAX_RANDOM_STARTS:
+            drawn, hits = RANDOM_STARTS, _basin_hits(problem, candidates, best)
+            while hits < CONFIRM_STARTS and drawn < MAX_RANDOM_STARTS:
                 best, ambiguous = problem.add_starts(
                     refs, candidates, _random_smacof_starts(problem, RANDOM_STARTS, skip=drawn), prior, best, ambiguous)
-                drawn += RANDOM_STARTS
-            ambiguous = ambiguous or _basin_hits(problem, candidates, best) < CONFIRM_STARTS
+                drawn, hits = drawn + RANDOM_STARTS, _basin_hits(problem, candidates, best)
+            ambiguous = ambiguous or hits < CONFIRM_STARTS
     if prior is None and not sparse and not best.fit_ok and loss == "nlos" and dim == 2 and n <= BUILDUP_ROBUST_MAX_N:
         # NLOS links: every start that embeds all ranges at once is pulled by the long ones, and
         # the robust solve from there keeps that basin. Placements that fit each anchor to its
