@@ -189,9 +189,30 @@ def lm_pairs(x0, pi, pj, column, n_free, dist, sqrt_iv, code, c, max_iterations,
     npairs = len(pi)
     m = n_free + 1
     x = x0.copy()
-    trial = np.empty_like(x)
-    z, u, z_new, u_new, a_mat, low, g, step, scratch = _work_buffers(npairs, dim, m)
-    damped = np.empty((m, m))
+    bufs = _work_buffers(npairs, dim, m)
+    z, u, _, _, a_mat, _, g, _, scratch = bufs
+    cost, it, status, have_info = _lm_iterate(x, pi, pj, column, dist, sqrt_iv, code, c, max_iterations, xtol2, ftol,
+                                              bufs, np.empty((m, m)), np.empty_like(x))
+    weights = np.empty(npairs)
+    for p in range(npairs):
+        weights[p] = _weight(z[p], code, c)
+    if not have_info:
+        _normal_equations(u, z, sqrt_iv, pi, pj, column, code, c, a_mat, g, scratch)
+    residuals = z / sqrt_iv
+    return x, a_mat, residuals, weights, cost, it, status
+
+
+@njit(cache=True)
+def _lm_iterate(x, pi, pj, column, dist, sqrt_iv, code, c, max_iterations, xtol2, ftol, bufs, damped, trial):
+    """The iterations of :func:`lm_pairs` on ``x`` in place, in caller-owned buffers (``bufs``
+    from ``_work_buffers``, ``damped`` (m, m), ``trial`` like x): a team solver reuses them
+    instead of allocating a dozen small arrays per solve. On return bufs' residuals and unit
+    vectors are those at x. Returns (cost, iterations, status, whether bufs' normal equations
+    are those at x)."""
+    npairs = len(pi)
+    dim = x.shape[1]
+    z, u, z_new, u_new, a_mat, low, g, step, scratch = bufs
+    m = a_mat.shape[0]
     _evaluate(x, pi, pj, dist, sqrt_iv, z, u)
     cost = _cost(z, code, c)
     cost_new = cost
@@ -249,13 +270,7 @@ def lm_pairs(x0, pi, pj, column, n_free, dist, sqrt_iv, code, c, max_iterations,
         if small_gain:
             status = 1
             break
-    weights = np.empty(npairs)
-    for p in range(npairs):
-        weights[p] = _weight(z[p], code, c)
-    if not have_info:
-        _normal_equations(u, z, sqrt_iv, pi, pj, column, code, c, a_mat, g, scratch)
-    residuals = z / sqrt_iv
-    return x, a_mat, residuals, weights, cost, it, status
+    return cost, it, status, have_info
 
 
 @njit(cache=True)
@@ -322,13 +337,11 @@ def _team_covariance(xk, pi, pj, dist, sqrt_iv, column, code, c, out, bufs, inv,
 
 
 @njit(cache=True)
-def _lm_team(xk, pi, pj, dist, sqrt_iv, column, code, c, max_iterations):
+def _lm_team(xk, pi, pj, dist, sqrt_iv, column, code, c, max_iterations, bufs, damped, trial):
     """One team as the full solver's ``_Problem.solve`` does it (``pair_solver.solve_pair_ranges``
     twice: the plain stage, 1e-3 sigma step tolerance, then for a robust ``code`` the robust
-    stage from there, 4x the budget, 1e-4 sigma), in place; True where the last stage converged."""
-    n_free = 0
-    for v in column:
-        n_free = max(n_free, v)
+    stage from there, 4x the budget, 1e-4 sigma), in place, in the caller's buffers
+    (``_lm_iterate``); True where the last stage converged."""
     top = 0.0
     far = 0.0
     for p in range(len(dist)):
@@ -336,13 +349,12 @@ def _lm_team(xk, pi, pj, dist, sqrt_iv, column, code, c, max_iterations):
         far = max(far, abs(dist[p]))
     floor = 1e-12 * far
     xtol = max(1e-3 / top, floor)
-    x, _, _, _, _, _, status = lm_pairs(xk, pi, pj, column, n_free, dist, sqrt_iv, 0, 1.0, max_iterations,
-                                        xtol * xtol, 1e-12)
+    _, _, status, _ = _lm_iterate(xk, pi, pj, column, dist, sqrt_iv, 0, 1.0, max_iterations, xtol * xtol, 1e-12,
+                                  bufs, damped, trial)
     if code != 0:
         xtol = max(1e-4 / top, floor)
-        x, _, _, _, _, _, status = lm_pairs(x, pi, pj, column, n_free, dist, sqrt_iv, code, c, 4 * max_iterations,
-                                            xtol * xtol, 1e-12)
-    xk[:, :] = x
+        _, _, status, _ = _lm_iterate(xk, pi, pj, column, dist, sqrt_iv, code, c, 4 * max_iterations, xtol * xtol,
+                                      1e-12, bufs, damped, trial)
     return status == 1
 
 
@@ -378,6 +390,7 @@ def solve_teams_2d(start, ref, pi, pj, dist, sqrt_iv, code, c, max_iterations, d
     bufs = _work_buffers(npairs, dim, m)
     z = bufs[0]
     trial = np.empty((n, dim))
+    damped_buf = np.empty((m, m))
     column = np.empty(nd, np.int64)
     inv = np.empty((m, m))
     e = np.zeros(m)
@@ -420,7 +433,8 @@ def solve_teams_2d(start, ref, pi, pj, dist, sqrt_iv, code, c, max_iterations, d
             xk[i, 0] = r0 * ex0 + r1 * ex1
             xk[i, 1] = sign * (-r0 * ex1 + r1 * ex0)
         if damped:
-            if not _lm_team(xk, pi, pj, dist[k], sqrt_iv[k], column, code, c, max_iterations):
+            if not _lm_team(xk, pi, pj, dist[k], sqrt_iv[k], column, code, c, max_iterations, bufs, damped_buf,
+                            trial):
                 continue
         else:
             if not _gauss_newton_team(xk, pi, pj, dist[k], sqrt_iv[k], column, 0, 1.0, max_iterations, 1e-3, trial,
