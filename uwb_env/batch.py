@@ -43,6 +43,7 @@ from uwb_env.localization.batched_calibration import (
 from uwb_env.localization.errors import LocalizationError
 from uwb_env.localization.multilateration import TAG_NO_FIX, fix_tags_2d
 from uwb_env.measurements import RangeMatrix
+from uwb_env.rewards import reward_terms
 from uwb_env.sim.motion import MotionModel
 from uwb_env.sim.odometry import OdometryModel
 from uwb_env.sim.planar_errors import planar_errors
@@ -377,10 +378,8 @@ class BatchedSystem:
         anchor_err, tag_err = self.errors_m()
         tag = tag_err.mean(1) if self.M else np.zeros(self.B)
         anchor = np.minimum(anchor_err, cfg.error_cap_m).mean(1)
-        reward = -(cfg.tag_error_weight * tag + cfg.anchor_error_weight * anchor
-                   + cfg.calibration_time_weight * report["calibrating_fraction"]
-                   + cfg.calibration_start_cost * report["round_started"])
-        return reward, tag, anchor
+        terms = reward_terms(cfg, tag, anchor, report["calibrating_fraction"], report["round_started"])
+        return sum(terms.values()), tag, anchor
 
 
 def _drift_rows(drift: dict, n: int, rows) -> dict:

@@ -33,6 +33,7 @@ from uwb_env.localization.multilateration import (
 )
 from uwb_env.localization.relocation import relocate_anchor
 from uwb_env.measurements import pool_rounds
+from uwb_env.rewards import reward_terms
 from uwb_env.sim import RangeModel, World
 from uwb_env.sim.planar_errors import planar_errors
 from uwb_env.sim.round_path import RoundPath, pair_mean_times_s
@@ -579,9 +580,4 @@ class LocalizationSystem:
             filled = min(self._hist_index, cfg.residual_window_steps)
             tag = float(self._tag_residual_hist[:filled].mean()) if filled else 0.0
             anchor = float(np.sqrt(self.predicted_anchor_var_m2()).mean())
-        return {
-            "tag_error": -cfg.tag_error_weight * tag,
-            "anchor_error": -cfg.anchor_error_weight * anchor,
-            "calibration_time": -cfg.calibration_time_weight * report.calibrating_fraction,
-            "calibration_start": -cfg.calibration_start_cost * float(report.round_started),
-        }
+        return reward_terms(cfg, tag, anchor, report.calibrating_fraction, float(report.round_started))

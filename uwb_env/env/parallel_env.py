@@ -110,11 +110,12 @@ from gymnasium.utils import EzPickle, seeding
 from pettingzoo import ParallelEnv
 
 from uwb_env.config import EnvConfig, UnknownConfigKeyError
+from uwb_env.rewards import REWARD_TERMS
 from uwb_env.system import LocalizationSystem
 
 _PLAIN_INTS = (int, np.int64, np.int32)  # bool is a subclass of int, not the same type: refused
 # the reward's four terms are in infos at reset (all zero) as after every step
-_ZERO_TERMS = {"tag_error": 0.0, "anchor_error": 0.0, "calibration_time": 0.0, "calibration_start": 0.0}
+_ZERO_TERMS = dict.fromkeys(REWARD_TERMS, 0.0)
 
 
 def make_config(config: EnvConfig | dict | None, overrides: dict[str, Any]) -> EnvConfig:
