@@ -49,6 +49,7 @@ N_FEATURES = len(ANCHOR_SET_FIELDS)
 N_ACTIONS = 3
 N_RAW = N_ACTIONS  # the last columns (the base action's one-hot) bypass the normalization
 _PREDICTED = OBS_FIELDS.index("predicted_position_std_m")
+_CALIBRATION = OBS_FIELDS.index("calibration_position_std_m")
 DEFAULT_BASE_THRESHOLD_M = 0.3
 
 
@@ -76,7 +77,7 @@ def anchor_set_features(own: np.ndarray, dt_s: float, base_threshold_m=DEFAULT_B
     shape = own.shape[:-1]
     thr_rows = np.broadcast_to(thr[..., None], shape)
     # the rule on the stds as given (float32 observations), exactly as the heuristic compares them
-    base = np.eye(N_ACTIONS)[threshold_actions(given[..., _PREDICTED], base_threshold_m)]
+    base = np.eye(N_ACTIONS)[threshold_actions(given[..., _PREDICTED], given[..., _CALIBRATION], base_threshold_m)]
     return np.concatenate(
         [own, others_mean, others_max, rank[..., None], np.full((*shape, 1), float(n)), np.full((*shape, 1), dt_s),
          thr_rows[..., None], (pred / thr_rows)[..., None], base],

@@ -53,11 +53,15 @@ def spec_of(family: str, value: float) -> str:
     return f"{family}:{int(round(value))}" if family in INTEGER else f"{family}:{value:.4g}"
 
 
-def tune_scenario(config: dict, seeds: list[int], workers: int, label: str) -> dict:
-    """Grid + one bisection round per family on validation seeds; returns the record."""
+def tune_scenario(config: dict, seeds: list[int], workers: int, label: str, known: dict | None = None,
+                  families=None) -> dict:
+    """Grid + one bisection round per family on validation seeds; returns the record.
+    ``known``: validation returns of the families not in ``families`` (default: all of GRIDS),
+    taken as they are (an earlier run's, checked by :func:`reusable`)."""
     from uwb_env.training.evaluate import run_jobs
 
-    scores: dict[str, float] = {}
+    families = list(GRIDS) if families is None else list(families)
+    scores: dict[str, float] = {s: v for s, v in (known or {}).items() if s.partition(":")[0] not in families}
 
     def run(specs):
         specs = [s for s in dict.fromkeys(specs) if s not in scores]
@@ -65,9 +69,10 @@ def tune_scenario(config: dict, seeds: list[int], workers: int, label: str) -> d
         for s in specs:
             scores[s] = float(np.mean([e["return"] for e in episodes if e["policy"] == s]))
 
-    run([spec_of(f, v) for f, grid in GRIDS.items() for v in grid])
+    run([spec_of(f, v) for f in families for v in GRIDS[f]])
     refine = []
-    for f, grid in GRIDS.items():
+    for f in families:
+        grid = GRIDS[f]
         values = sorted(grid)
         i = int(np.argmax([scores[spec_of(f, v)] for v in values]))
         for j in (i - 1, i + 1):
@@ -86,7 +91,12 @@ def reusable(row: dict | None, seeds: list[int], a, config: dict) -> dict | None
     same test and validation seeds, the best heuristic's first ``a.spot_check`` test episodes
     reproduce its recorded tag errors bit for bit at today's code, and the per-anchor family's
     tuned spec (the learned policy's base) reproduces its recorded validation return (else None:
-    recompute). The lookahead is reused without a re-run (same dynamics, checked here)."""
+    recompute). The lookahead is reused without a re-run (same dynamics, checked here).
+
+    With ``a.retune`` (families whose policies changed, to be tuned again): the check is one
+    family that did not change, its tuned spec's validation return reproduced bit for bit (the
+    dynamics did not change); the best heuristic's test episodes are checked as above only when
+    its family is not retuned."""
     from uwb_env.training.evaluate import run_jobs
 
     if row is None or row.get("test_seeds") != [seeds[0], seeds[-1]] or "tuning" not in row:
@@ -95,13 +105,20 @@ def reusable(row: dict | None, seeds: list[int], a, config: dict) -> dict | None
     if v1 - v0 + 1 != a.val_seeds:
         return None
     check = seeds[: a.spot_check]
-    base = row["tuning"]["best_of_family"]["per_anchor_threshold"]
-    jobs = [(row["best_heuristic"], s, config) for s in check]
+    retune = set(a.retune or ())
+    best_family = row["best_heuristic"].partition(":")[0]
+    kept = [f for f in GRIDS if f not in retune]
+    if not kept:
+        return None
+    base = row["tuning"]["best_of_family"]["per_anchor_threshold" if not retune else kept[0]]
+    jobs = [] if best_family in retune else [(row["best_heuristic"], s, config) for s in check]
     if base != row["best_heuristic"]:
         jobs += [(base, s, config) for s in range(v0, v1 + 1)]
     episodes = run_jobs(jobs, a.workers, "spot check", show=False)
-    again = arrays(episodes, row["best_heuristic"])[0]
-    ok = again.tolist() == row["errors_m"]["heuristic"][: len(check)]
+    ok = True
+    if best_family not in retune:
+        again = arrays(episodes, row["best_heuristic"])[0]
+        ok = again.tolist() == row["errors_m"]["heuristic"][: len(check)]
     if base != row["best_heuristic"]:
         ok &= float(np.mean([e["return"] for e in episodes if e["policy"] == base])) == \
             row["tuning"]["validation_returns"][base]
@@ -165,6 +182,10 @@ def main() -> None:
                    "heuristic test episodes and lookahead from the detail file of an earlier run when the best "
                    "heuristic's first --spot-check test seeds reproduce it exactly (else recompute them): the "
                    "learned model changed, the dynamics did not")
+    p.add_argument("--retune", nargs="+", default=None, choices=list(GRIDS),
+                   help="with --reuse-heuristics: families whose policies changed; they are tuned again on the "
+                   "validation seeds (and the best heuristic re-run on the test seeds if it changes), the other "
+                   "families' validation returns are reused after a bit-exact check of one of them")
     p.add_argument("--spot-check", type=int, default=5, help="test seeds re-run per scenario for --reuse-heuristics "
                    "(>= 1); the lookahead options do not apply to a reused lookahead")
     a = p.parse_args()
@@ -212,11 +233,23 @@ def main() -> None:
         v0, t0 = sc["seeds"]["validation"][0], sc["seeds"]["test"][0]
         seeds = list(range(t0, t0 + a.test_seeds))
         reused = reusable(earlier.get(name), seeds, a, config) if a.reuse_heuristics else None
-        if reused is not None:
+        partial = None  # the families whose tuning was reused while others were tuned again
+        if reused is not None and a.retune:
+            partial = {"families_reused": [f for f in GRIDS if f not in a.retune], "families_retuned": a.retune,
+                       "from_code_version": (reused.get("heuristic_reused", {}).get("from_code_version")
+                                             or reused.get("code_version") or earlier_version)}
+            tuned = tune_scenario(config, list(range(v0, v0 + a.val_seeds)), a.workers, f"retune {name}",
+                                  known=reused["tuning"]["validation_returns"], families=a.retune)
+            best = tuned["best"]
+            if best != reused["best_heuristic"]:  # a retuned family now wins: its test episodes are new
+                reused = {**reused, "stale_heuristic": True}
+        elif reused is not None:
             tuned, best = reused["tuning"], reused["best_heuristic"]
         else:
             tuned = tune_scenario(config, list(range(v0, v0 + a.val_seeds)), a.workers, f"tune {name}")
             best = tuned["best"]
+        if reused is not None and reused.get("stale_heuristic"):
+            reused = None
         # the learned scheduler is a residual over the per-anchor threshold rule: its base
         # threshold is that family's tuned value on the scenario's validation seeds
         base = tuned["best_of_family"]["per_anchor_threshold"].partition(":")[2]
@@ -239,6 +272,8 @@ def main() -> None:
                       or earlier_version)
             row["heuristic_reused"] = {"from_code_version": origin,
                                        "spot_check_seeds": a.spot_check, "spot_check_identical": True}
+        if partial is not None:
+            row["tuning_reused"] = partial
         row["code_version"] = code_version()
         row["learned_model_sha256"] = digest
         row["errors_m"] = {"heuristic": h_errors.tolist(), "learned": lr[0].tolist()}  # by test seed, for pairing
@@ -282,7 +317,7 @@ def main() -> None:
         headroom = paired_relative_improvement(la_err[0], h_n, "iqm")
         # a gap the lookahead does not significantly open cannot be "closed" by a fraction
         gap = gap_closed_fraction(heur_n, learn_n, ref) if headroom.ci_low > 0 else float("nan")
-        default["lookahead"] = {"spec": spec, **describe(*la_err), "n_seeds": n,
+        default["lookahead"] = {"spec": spec, **describe(*la_err), "n_seeds": n, "errors_m": la_err[0].tolist(),
                                 "heuristic_iqm_m_same_seeds": heur_n, "learned_iqm_m_same_seeds": learn_n,
                                 "headroom": headroom.value, "headroom_ci": [headroom.ci_low, headroom.ci_high],
                                 "gap_closed_fraction": gap}

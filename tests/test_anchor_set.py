@@ -13,7 +13,7 @@ from uwb_env.system import OBS_FIELDS
 def _reference(own: np.ndarray, dt: float, threshold: float = 0.3) -> np.ndarray:
     """Row by row, with explicit loops over the other anchors; the base action counted by hand."""
     n = own.shape[0]
-    stale = own[:, 1] > threshold
+    stale = own[:, 1] ** 2 - own[:, 2] ** 2 > threshold**2  # drift since calibration (predicted, calibration std)
     team = stale.sum() >= 0.5 * n
     rows = []
     for i in range(n):
