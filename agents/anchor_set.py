@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from uwb_env.agents.per_anchor import team_vote, threshold_actions
+from uwb_env.agents.per_anchor import MEASURES, team_vote, threshold_actions
 from uwb_env.system import OBS_FIELDS
 
 _SUMMARIZED = OBS_FIELDS[:6]  # the team-level flags (calibrating, progress) are the same for all
@@ -53,10 +53,13 @@ _CALIBRATION = OBS_FIELDS.index("calibration_position_std_m")
 DEFAULT_BASE_THRESHOLD_M = 0.3
 
 
-def anchor_set_features(own: np.ndarray, dt_s: float, base_threshold_m=DEFAULT_BASE_THRESHOLD_M) -> np.ndarray:
+def anchor_set_features(own: np.ndarray, dt_s: float, base_threshold_m=DEFAULT_BASE_THRESHOLD_M,
+                        base_measure: str = "total") -> np.ndarray:
     """(..., N, len(OBS_FIELDS)) per-anchor env features (positions already dropped) ->
     (..., N, N_FEATURES) float32. ``base_threshold_m``: the residual's base rule threshold, a
-    float or one per team (shape (...)). Needs N >= 2 (a team has at least 3 anchors)."""
+    float or one per team (shape (...)); ``base_measure``: what the rule compares with it
+    (``per_anchor.threshold_actions``: "total" or "drift"). Needs N >= 2 (a team has at least
+    3 anchors)."""
     given = np.asarray(own)
     own = given.astype(np.float64)
     n = own.shape[-2]
@@ -77,7 +80,8 @@ def anchor_set_features(own: np.ndarray, dt_s: float, base_threshold_m=DEFAULT_B
     shape = own.shape[:-1]
     thr_rows = np.broadcast_to(thr[..., None], shape)
     # the rule on the stds as given (float32 observations), exactly as the heuristic compares them
-    base = np.eye(N_ACTIONS)[threshold_actions(given[..., _PREDICTED], given[..., _CALIBRATION], base_threshold_m)]
+    base = np.eye(N_ACTIONS)[threshold_actions(given[..., _PREDICTED], given[..., _CALIBRATION], base_threshold_m,
+                                               measure=base_measure)]
     return np.concatenate(
         [own, others_mean, others_max, rank[..., None], np.full((*shape, 1), float(n)), np.full((*shape, 1), dt_s),
          thr_rows[..., None], (pred / thr_rows)[..., None], base],
@@ -86,11 +90,12 @@ def anchor_set_features(own: np.ndarray, dt_s: float, base_threshold_m=DEFAULT_B
 
 
 def from_observations(observations: dict[str, np.ndarray], dt_s: float,
-                      base_threshold_m: float = DEFAULT_BASE_THRESHOLD_M) -> tuple[list[str], np.ndarray]:
+                      base_threshold_m: float = DEFAULT_BASE_THRESHOLD_M,
+                      base_measure: str = "total") -> tuple[list[str], np.ndarray]:
     """The ParallelEnv's observation dict -> (agents, (N, N_FEATURES) rows)."""
     agents = list(observations)
     own = np.stack([observations[a][-len(OBS_FIELDS):] for a in agents])
-    return agents, anchor_set_features(own, dt_s, base_threshold_m)
+    return agents, anchor_set_features(own, dt_s, base_threshold_m, base_measure)
 
 
 def normalize_rows(rows: np.ndarray, obs_rms, clip_obs: float, epsilon: float = 1e-8) -> np.ndarray:
@@ -103,8 +108,9 @@ def normalize_rows(rows: np.ndarray, obs_rms, clip_obs: float, epsilon: float = 
 
 class AnchorSetPolicy:
     """A trained per-anchor policy shared by all anchors, for any team size (``per_anchor``
-    actions): a residual over the per-anchor threshold rule at ``base_threshold_m`` (tune it
-    like the heuristic's threshold; the spec ``learned:<model>@<threshold>`` sets it).
+    actions): a residual over the per-anchor threshold rule at ``base_threshold_m`` on
+    ``base_measure`` (tune both like the heuristics' threshold and rule; the specs
+    ``learned:<model>@<threshold>`` and ``learned:<model>@drift:<threshold>`` set them).
     ``AnchorSetPolicy.load(path)`` reads a ``training.train_anchor_set`` output (model.zip,
     vecnormalize.pkl beside it); the harness calls :meth:`configure` with the env config (the
     step length is one of the features)."""
@@ -113,20 +119,24 @@ class AnchorSetPolicy:
     action_mode = "per_anchor"
 
     def __init__(self, policy, obs_rms=None, clip_obs: float = 10.0, deterministic: bool = True,
-                 dt_s: float = 0.2, epsilon: float = 1e-8, base_threshold_m: float = DEFAULT_BASE_THRESHOLD_M):
+                 dt_s: float = 0.2, epsilon: float = 1e-8, base_threshold_m: float = DEFAULT_BASE_THRESHOLD_M,
+                 base_measure: str = "total"):
         self.policy, self.obs_rms, self.clip_obs = policy, obs_rms, clip_obs
         self.deterministic, self.dt_s, self.epsilon = deterministic, dt_s, epsilon
         if not (np.isfinite(base_threshold_m) and base_threshold_m > 0):
             raise ValueError(f"base_threshold_m={base_threshold_m!r}: must be finite and > 0")
         self.base_threshold_m = float(base_threshold_m)
+        if base_measure not in MEASURES:
+            raise ValueError(f"base_measure={base_measure!r}: must be one of {MEASURES}")
+        self.base_measure = base_measure
         self.prior_logit = float(getattr(policy, "prior_logit", 0.0))
         # Deterministic actions are the argmax of the logits: one small MLP, evaluated in numpy
         # (SB3's predict costs ~1-3 ms a step in tensor conversions; this ~20 us, same actions).
         self._layers = _numpy_actor(policy) if deterministic else None
 
     @classmethod
-    def load(cls, path, deterministic: bool = True, base_threshold_m: float = DEFAULT_BASE_THRESHOLD_M
-             ) -> AnchorSetPolicy:
+    def load(cls, path, deterministic: bool = True, base_threshold_m: float = DEFAULT_BASE_THRESHOLD_M,
+             base_measure: str = "total") -> AnchorSetPolicy:
         import pickle
         from pathlib import Path
 
@@ -149,7 +159,7 @@ class AnchorSetPolicy:
         with open(stats, "rb") as f:
             vn = pickle.load(f)
         return cls(model.policy, vn.obs_rms if vn.norm_obs else None, vn.clip_obs, deterministic, epsilon=vn.epsilon,
-                   base_threshold_m=base_threshold_m)
+                   base_threshold_m=base_threshold_m, base_measure=base_measure)
 
     def configure(self, config) -> None:
         self.dt_s = float(config.sim.dt_s)
@@ -161,7 +171,7 @@ class AnchorSetPolicy:
         pass
 
     def rows(self, observations: dict[str, np.ndarray]) -> tuple[list[str], np.ndarray]:
-        agents, rows = from_observations(observations, self.dt_s, self.base_threshold_m)
+        agents, rows = from_observations(observations, self.dt_s, self.base_threshold_m, self.base_measure)
         if self.obs_rms is not None:
             rows = normalize_rows(rows, self.obs_rms, self.clip_obs, self.epsilon)
         return agents, rows

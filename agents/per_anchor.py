@@ -12,23 +12,39 @@ from uwb_env.agents.baselines import _FROM_END, _positive
 NOTHING, RELOCATE_ME, TEAM_ROUND = 0, 1, 2
 
 
-def threshold_actions(predicted_std_m, calibration_std_m, threshold_m, team_fraction: float = 0.5) -> np.ndarray:
+MEASURES = ("total", "drift")
+
+
+def threshold_actions(predicted_std_m, calibration_std_m, threshold_m, team_fraction: float = 0.5,
+                      measure: str = "total") -> np.ndarray:
     """The per-anchor threshold rule on (..., N) predicted and last-calibration stds
     (``threshold_m`` a float, or one per team of shape (...)): -> (..., N) actions. One
-    implementation for the heuristic and for the base of the learned residual scheduler
+    implementation for the heuristics and for the base of the learned residual scheduler
     (agents/anchor_set.py).
 
-    An anchor is stale when the drift since its last calibration, sqrt(predicted^2 -
-    calibration^2), exceeds the threshold: what a new calibration would take away. The
-    calibration's own part stays whatever the anchor does: in 3D, an anchor off the plane of
-    near-coplanar others has a height its ranges barely fix, and a rule on the predicted std
-    alone asked to re-locate it step after step, each round holding every tag's fix (the
-    ``three_d`` scenario: 6 % of episodes above 1 m of tag error). The stds are compared in
-    float64 from the values given (float32 observations), the same for both callers."""
-    pred = np.asarray(predicted_std_m, dtype=np.float64)
-    cal = np.asarray(calibration_std_m, dtype=np.float64)
+    ``measure`` says what must exceed the threshold for an anchor to be stale:
+
+    - ``"total"``: its predicted std (``per_anchor_threshold``), compared in the stds' own dtype
+      (float32 observations: NumPy's scalar promotion);
+    - ``"drift"``: the drift since its last calibration, sqrt(predicted^2 - calibration^2), in
+      float64 (``per_anchor_drift``): what a new calibration would take away. On the total, an
+      anchor whose calibration alone is above the threshold asks again right after every
+      round: in 3D, an anchor off the plane of near-coplanar others has a height its ranges
+      barely fix, and the total rule re-located it back to back, each round holding every
+      tag's fix (``three_d`` test seed 1000011: 119 steps of rounds, > 1 m of mean tag error).
+      When a calibration is poor by chance (fast robots: rounds fit poorly), the total rule's
+      early repeat pays instead; which rule fits a deployment is tuned like the threshold.
+    """
+    if measure not in MEASURES:
+        raise ValueError(f"measure={measure!r}: must be one of {MEASURES}")
     thr = float(threshold_m) if np.ndim(threshold_m) == 0 else np.asarray(threshold_m, dtype=np.float64)[..., None]
-    stale = pred * pred - cal * cal > thr * thr
+    if measure == "total":
+        pred = np.asarray(predicted_std_m)
+        stale = pred > thr
+    else:
+        pred = np.asarray(predicted_std_m, dtype=np.float64)
+        cal = np.asarray(calibration_std_m, dtype=np.float64)
+        stale = pred * pred - cal * cal > thr * thr
     team = stale.sum(-1, keepdims=True) >= team_fraction * pred.shape[-1]
     return np.where(team, TEAM_ROUND, np.where(stale, RELOCATE_ME, NOTHING))
 
@@ -44,19 +60,23 @@ def team_vote(actions, team_fraction: float = 0.5) -> np.ndarray:
 
 
 class PerAnchorThresholdPolicy:
-    """Each anchor asks to re-locate itself when its drift since its last calibration (predicted
-    std over the calibration's, in quadrature) exceeds ``threshold_m``; when at least
-    ``team_fraction`` of the anchors exceed it at once, they ask for a team round instead (one
-    round re-estimates them all: cheaper than one by one). See :func:`threshold_actions`."""
+    """Each anchor asks to re-locate itself when its own uncertainty exceeds ``threshold_m``
+    (``measure``: its predicted std, or the drift since its last calibration; see
+    :func:`threshold_actions`); when at least ``team_fraction`` of the anchors exceed it at once,
+    they ask for a team round instead (one round re-estimates them all: cheaper than one by
+    one). Specs: ``per_anchor_threshold:T`` (total), ``per_anchor_drift:T`` (drift)."""
 
     uses_ground_truth = False
     action_mode = "per_anchor"  # the evaluation harness runs it with these actions
 
-    def __init__(self, threshold_m: float = 0.15, team_fraction: float = 0.5):
+    def __init__(self, threshold_m: float = 0.15, team_fraction: float = 0.5, measure: str = "total"):
         self.threshold_m = _positive("threshold_m", threshold_m)
         if not 0 < team_fraction <= 1:
             raise ValueError(f"team_fraction={team_fraction!r}: must be in (0, 1]")
+        if measure not in MEASURES:
+            raise ValueError(f"measure={measure!r}: must be one of {MEASURES}")
         self.team_fraction = team_fraction
+        self.measure = measure
 
     def reset(self, seed: int | None = None) -> None:
         pass
@@ -65,5 +85,5 @@ class PerAnchorThresholdPolicy:
         pred, cal = _FROM_END["predicted_position_std_m"], _FROM_END["calibration_position_std_m"]
         agents = list(observations)
         actions = threshold_actions([observations[a][pred] for a in agents], [observations[a][cal] for a in agents],
-                                    self.threshold_m, self.team_fraction)
+                                    self.threshold_m, self.team_fraction, self.measure)
         return {agent: int(x) for agent, x in zip(agents, actions, strict=True)}

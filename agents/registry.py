@@ -30,14 +30,17 @@ def shipped_model(name: str) -> Path:
 
 def _learned(param: str, dt_s: float):
     """``learned:<model>`` or, for the per-anchor residual scheduler, ``learned:<model>@<threshold_m>``
-    (the base rule's threshold; default ``anchor_set.DEFAULT_BASE_THRESHOLD_M``)."""
+    (the base rule's threshold on the predicted std; default ``anchor_set.DEFAULT_BASE_THRESHOLD_M``)
+    or ``learned:<model>@drift:<threshold_m>`` (the base rule on the drift since calibration)."""
     from uwb_env.agents.learned import LearnedPolicy
 
-    path, threshold = param, ""
+    path, threshold, measure = param, "", "total"
     head, at, tail = param.rpartition("@")
     # '@' followed by more path (a directory named with '@') is part of the model's path
     if at and "/" not in tail and not tail.endswith(".zip"):
         path, threshold = head, tail
+        if threshold.startswith("drift:"):
+            measure, threshold = "drift", threshold.removeprefix("drift:")
         if not threshold:
             raise ValueError(f"learned:{param}: '@' needs a base threshold in metres, e.g. learned:anchor_set@0.3")
         try:
@@ -51,7 +54,7 @@ def _learned(param: str, dt_s: float):
     if record.is_file() and json.loads(record.read_text()).get("env") == "anchor_set":
         from uwb_env.agents.anchor_set import AnchorSetPolicy
 
-        kwargs = {"base_threshold_m": float(threshold)} if threshold else {}
+        kwargs = {"base_threshold_m": float(threshold), "base_measure": measure} if threshold else {}
         policy = AnchorSetPolicy.load(path, **kwargs)  # any team size; per_anchor actions
         policy.dt_s = dt_s
         return policy
@@ -93,13 +96,15 @@ POLICIES: dict[str, tuple[Callable, str]] = {
     "random": (lambda p, dt: RandomPolicy(float(p or 0.05)), "request probability per step"),
     "per_anchor_threshold": (lambda p, dt: _per_anchor_threshold(p), "per-anchor predicted std threshold (m); "
                              "needs action_mode=per_anchor"),
+    "per_anchor_drift": (lambda p, dt: _per_anchor_threshold(p, "drift"), "per-anchor threshold (m) on the drift "
+                         "since the anchor's last calibration; needs action_mode=per_anchor"),
     "oracle": (lambda p, dt: OraclePolicy(float(p or 0.3)), "true mean anchor error threshold (m); GROUND TRUTH"),
     "lookahead": (lambda p, dt: _lookahead(p, False), "H[@K]: planner over sampled futures, horizon H steps "
                   "(default 30), base fixed interval K (default 10); GROUND TRUTH"),
     "clairvoyant": (lambda p, dt: _lookahead(p, True), "H[@K]: the lookahead on the real future's noise; "
                     "GROUND TRUTH, optimistic bound"),
     "learned": (lambda p, dt: _learned(p, dt), "path of a saved SB3 model (.zip), or a shipped model's name; "
-                "@T: the per-anchor scheduler's base threshold (m)"),
+                "@T / @drift:T: the per-anchor scheduler's base rule and threshold (m)"),
     "rllib": (lambda p, dt: _rllib(p, dt), "path of an RLlib checkpoint folder"),
 }
 
@@ -108,10 +113,10 @@ class PolicySpecError(ValueError):
     """A policy spec that names no known policy or carries a bad parameter."""
 
 
-def _per_anchor_threshold(param):
+def _per_anchor_threshold(param, measure: str = "total"):
     from uwb_env.agents.per_anchor import PerAnchorThresholdPolicy
 
-    return PerAnchorThresholdPolicy(float(param or 0.15))
+    return PerAnchorThresholdPolicy(float(param or 0.15), measure=measure)
 
 
 def make_policy(spec: str, dt_s: float = 0.2):

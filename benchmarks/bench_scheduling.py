@@ -3,13 +3,14 @@
 For every scenario of the suite (training/scenarios/suite/suite.yml, held-out ones included):
 
 1. tunes the deployable heuristic families (fixed interval, team uncertainty threshold, and
-   the per-anchor threshold that uses the same per-anchor actions as the learned policy) on
+   the per-anchor thresholds on the predicted std and on the drift since calibration, which
+   use the same per-anchor actions as the learned policy) on
    the scenario's validation seeds, for the env's return (the learned policy's objective): a
    grid, then one bisection round around each family's best;
 2. runs the best tuned heuristic and the learned scheduler (one model for every scenario and
    team size; the training seed with the best validation score; a residual over the per-anchor
-   threshold rule, whose base threshold is that family's value tuned in step 1) on >= 100 test
-   seeds;
+   rule, whose base is the per-anchor family and threshold that scored higher in step 1) on
+   >= 100 test seeds;
 3. reports IQM / median tag error with 95 % bootstrap CIs, the catastrophic rate, the time
    spent calibrating, and the paired IQM difference learned - heuristic with its CI.
 
@@ -45,7 +46,19 @@ GRIDS = {
     "fixed": (10, 20, 40, 80, 160),
     "threshold": (0.06, 0.12, 0.25, 0.5, 1.0),
     "per_anchor_threshold": (0.08, 0.15, 0.3, 0.6, 1.2),
+    # the same rule on the drift since the anchor's last calibration (agents/per_anchor.py)
+    "per_anchor_drift": (0.08, 0.15, 0.3, 0.6, 1.2),
 }
+PER_ANCHOR = ("per_anchor_threshold", "per_anchor_drift")  # the learned residual's candidate base rules
+
+
+def learned_base(tuned: dict) -> str:
+    """The learned residual's base: the per-anchor family that scored higher on the validation
+    seeds, at its tuned threshold -> the ``@`` part of its spec (``T`` or ``drift:T``)."""
+    returns = tuned["validation_returns"]
+    best = max((tuned["best_of_family"][f] for f in PER_ANCHOR if f in tuned["best_of_family"]), key=returns.get)
+    family, _, value = best.partition(":")
+    return value if family == "per_anchor_threshold" else f"drift:{value}"
 INTEGER = {"fixed"}
 
 
@@ -110,7 +123,8 @@ def reusable(row: dict | None, seeds: list[int], a, config: dict) -> dict | None
     kept = [f for f in GRIDS if f not in retune]
     if not kept:
         return None
-    base = row["tuning"]["best_of_family"]["per_anchor_threshold" if not retune else kept[0]]
+    base = row["tuning"]["best_of_family"]["per_anchor_threshold" if not retune else kept[0]] \
+        if "per_anchor_threshold" in row["tuning"]["best_of_family"] else row["best_heuristic"]
     jobs = [] if best_family in retune else [(row["best_heuristic"], s, config) for s in check]
     if base != row["best_heuristic"]:
         jobs += [(base, s, config) for s in range(v0, v1 + 1)]
@@ -250,9 +264,9 @@ def main() -> None:
             best = tuned["best"]
         if reused is not None and reused.get("stale_heuristic"):
             reused = None
-        # the learned scheduler is a residual over the per-anchor threshold rule: its base
-        # threshold is that family's tuned value on the scenario's validation seeds
-        base = tuned["best_of_family"]["per_anchor_threshold"].partition(":")[2]
+        # the learned scheduler is a residual over a per-anchor rule: its base is the per-anchor
+        # family and threshold that scored higher on the scenario's validation seeds
+        base = learned_base(tuned)
         learned = f"{learned_model}@{base}"
         specs = [learned] if reused is not None else [best, learned]
         if name == "default":

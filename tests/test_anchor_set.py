@@ -13,7 +13,7 @@ from uwb_env.system import OBS_FIELDS
 def _reference(own: np.ndarray, dt: float, threshold: float = 0.3) -> np.ndarray:
     """Row by row, with explicit loops over the other anchors; the base action counted by hand."""
     n = own.shape[0]
-    stale = own[:, 1] ** 2 - own[:, 2] ** 2 > threshold**2  # drift since calibration (predicted, calibration std)
+    stale = own[:, 1] > threshold
     team = stale.sum() >= 0.5 * n
     rows = []
     for i in range(n):
@@ -157,8 +157,8 @@ def test_numpy_actor_takes_the_same_actions_as_sb3():
     assert len(np.unique(sb3)) == 3  # the inputs exercise every action
 
 
-@pytest.mark.parametrize("threshold", [0.1, 0.3])
-def test_an_untrained_residual_policy_is_the_per_anchor_threshold_rule(tmp_path, threshold):
+@pytest.mark.parametrize("threshold,measure", [(0.1, "total"), (0.3, "total"), (0.1, "drift")])
+def test_an_untrained_residual_policy_is_the_per_anchor_threshold_rule(tmp_path, threshold, measure):
     """The residual starts as its base rule, exactly (argmax), in the numpy actor and in SB3."""
     pytest.importorskip("stable_baselines3")
     from stable_baselines3 import PPO
@@ -181,11 +181,12 @@ def test_an_untrained_residual_policy_is_the_per_anchor_threshold_rule(tmp_path,
     onehot = np.eye(3)[obs[:, -3:].argmax(1)]
     np.testing.assert_array_equal(obs[:, -3:], onehot)  # the venv's normalized output keeps the one-hot raw
     assert np.abs(obs[:, :-3]).max() > 0 and not np.allclose(venv.obs_rms.mean[-3:], 0)  # others normalized
-    learned = AnchorSetPolicy(model.policy, venv.obs_rms, venv.clip_obs, base_threshold_m=threshold)
+    learned = AnchorSetPolicy(model.policy, venv.obs_rms, venv.clip_obs, base_threshold_m=threshold,
+                              base_measure=measure)
     assert learned.prior_logit == 3.0 and learned._layers is not None
     env = uwb_env.parallel_env(max_cycles=120, action_mode="per_anchor", sim={"n_anchors": 5})
     a = rollout(env, learned, seed=4)
-    b = rollout(env, PerAnchorThresholdPolicy(threshold), seed=4)
+    b = rollout(env, PerAnchorThresholdPolicy(threshold, measure=measure), seed=4)
     np.testing.assert_array_equal(a.round_started, b.round_started)
     np.testing.assert_array_equal(a.tag_error_m, b.tag_error_m)
     assert a.round_started.any()  # the rule calibrates in these episodes
@@ -241,3 +242,16 @@ def test_training_copies_cast_team_requests_as_votes(tmp_path):
     obs, *_ = venv.step(quorum)
     assert np.all(obs[3:, calibrating] == 1) and np.all(obs[:3, calibrating] == 0)
     venv.close()
+
+
+def test_the_learned_spec_names_the_base_rule():
+    pytest.importorskip("stable_baselines3")
+    from uwb_env.agents.registry import PolicySpecError, make_policy
+
+    total, drift = make_policy("learned:anchor_set@0.25"), make_policy("learned:anchor_set@drift:0.4")
+    assert (total.base_threshold_m, total.base_measure) == (0.25, "total")
+    assert (drift.base_threshold_m, drift.base_measure) == (0.4, "drift")
+    with pytest.raises(PolicySpecError, match="needs a base threshold"):
+        make_policy("learned:anchor_set@drift:")
+    with pytest.raises(PolicySpecError, match="must be a number"):
+        make_policy("learned:anchor_set@max:0.3")

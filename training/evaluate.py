@@ -50,14 +50,19 @@ SHIPPED_LEARNED = "anchor_set"
 
 
 def shipped_learned_spec(tuned: Path = DEFAULT_TUNED) -> str:
-    """``learned:anchor_set@T``: the shipped residual scheduler on the per-anchor threshold rule
-    at the threshold tuned for the default scenario (``tuned``'s per_anchor_threshold; the
-    model's default base when the file has none)."""
+    """``learned:anchor_set@T`` (or ``@drift:T``): the shipped residual scheduler on the per-anchor
+    rule tuned for the default scenario: of ``tuned``'s per-anchor families (the predicted std,
+    the drift since calibration) the one with the higher validation return, at its threshold
+    (the model's default base when the file has none)."""
     try:
-        spec = json.loads(Path(tuned).read_text())["tuned"]["per_anchor_threshold"]
+        record = json.loads(Path(tuned).read_text())
+        names = [f for f in ("per_anchor_threshold", "per_anchor_drift") if f in record["tuned"]]
+        family = max(names, key=lambda f: record.get("families", {}).get(f, {}).get("best_return", -np.inf))
+        spec = record["tuned"][family]
     except (OSError, KeyError, ValueError):
         return f"learned:{SHIPPED_LEARNED}"
-    return f"learned:{SHIPPED_LEARNED}@{spec.partition(':')[2]}"
+    value = spec.partition(":")[2]
+    return f"learned:{SHIPPED_LEARNED}@{value if family == 'per_anchor_threshold' else 'drift:' + value}"
 
 
 def default_policies() -> list[str]:

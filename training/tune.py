@@ -1,6 +1,7 @@
 """Tune every heuristic family on validation seeds for the env's return (``uwb-env tune``).
 
-Each family (fixed interval, uncertainty threshold, residual trigger) has one parameter. The
+Each family (fixed interval, uncertainty threshold, residual trigger, the per-anchor thresholds on
+the predicted std and on the drift since calibration) has one parameter. The
 tuner evaluates a grid on the same validation seeds (common random numbers: every candidate
 sees the same episodes), then refines around the best point by bisection towards its better
 neighbour, and keeps the candidate with the highest mean return. The result file names the
@@ -30,6 +31,8 @@ FAMILIES: dict[str, tuple[tuple[float, ...], bool, tuple[float, float]]] = {
     "residual": ((0.05, 0.08, 0.12, 0.17, 0.25, 0.35, 0.5, 0.7, 1.0), False, (0.01, 5.0)),
     # per-anchor rounds ("re-locate me") and team rounds: the heuristic for the per-anchor actions
     "per_anchor_threshold": ((0.05, 0.08, 0.12, 0.17, 0.25, 0.35, 0.5, 0.7, 1.0), False, (0.01, 5.0)),
+    # the same on the drift since the anchor's last calibration (agents/per_anchor.py)
+    "per_anchor_drift": ((0.05, 0.08, 0.12, 0.17, 0.25, 0.35, 0.5, 0.7, 1.0), False, (0.01, 5.0)),
 }
 
 
