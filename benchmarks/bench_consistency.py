@@ -1,0 +1,133 @@
+"""Is a calibration's covariance honest in the env? NEES of later calibrations (issue: localization
+that never passes a wrong answer off as a success).
+
+``bench_localization`` checks the solver on static rounds with Gaussian ranges (NEES 1.00 at
+N = 8). In the env the rounds are ranged while the robots move (each pair's mean is carried to
+the round's midpoint along the odometry) and the ranges have NLOS outliers; this measures what
+that leaves of the covariance's honesty. For each configuration, episodes with a team round
+every 10 steps; every later round is solved by the full solver (``later_calibrations`` hands
+every team back: the same answers, ``tests/test_batched_calibration.py``) and each round that
+comes back ``ok`` and unambiguous is scored:
+
+    NEES = e^T C^+ e,   e = estimate - truth, both in the paper frame of the round's gauge
+    anchors (the frame's sign convention, which near-degenerate layouts can flip, is taken
+    from the estimate), C the solver's covariance in that frame.
+
+An honest covariance gives a mean NEES equal to its rank, N dim - dim (dim + 1) / 2, and 0.1 %
+of rounds beyond the chi-square 99.9 % quantile. Figures per configuration (``<cfg>`` =
+``{2d,3d}_n<N>_{static,patrol}_{clean,nlos}``): ``nees_over_rank_<cfg>`` (mean NEES / rank),
+``nees_median_over_rank_<cfg>``, ``nees_beyond_999_share_<cfg>``, ``rounds_<cfg>``.
+
+    python benchmarks/bench_consistency.py [--quick]
+
+Writes benchmarks/results/bench_consistency.json (``_quick`` with --quick).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import print_table, write_results  # noqa: E402
+
+# (dim, anchors, anchor motion, NLOS probability (None: the default radio))
+CONFIGS = (
+    (2, 5, "static", 0.0), (2, 5, "patrol", 0.0), (2, 5, "patrol", None), (2, 4, "patrol", None),
+    (3, 8, "static", 0.0), (3, 8, "patrol", 0.0), (3, 8, "patrol", None),
+)
+SEED_BASE = 700_000  # outside the protocol's training / validation / test blocks
+
+
+def name_of(dim: int, n: int, motion: str, nlos) -> str:
+    return f"{dim}d_n{n}_{motion}_{'clean' if nlos == 0.0 else 'nlos'}"
+
+
+def run_config(dim: int, n: int, motion: str, nlos, episodes: int, steps: int) -> np.ndarray:
+    """NEES of every ok, unambiguous later round of ``episodes`` episodes."""
+    import uwb_env.system as system
+    from uwb_env import parallel_env
+    from uwb_env.localization.alignment import paper_frame
+
+    rounds = []
+    current = {}
+    solve, batched = system.calibrate_anchors, system.later_calibrations
+
+    def recording_solve(*args, **kwargs):
+        result = solve(*args, **kwargs)
+        s = current.get("system")
+        if s is not None and kwargs.get("prior") is not None and result.status == "ok" and not result.ambiguous:
+            truth = s.world.to_estimate_frame(s._round_path.midpoint_truth())
+            rounds.append((result.positions.copy(), result.covariance.copy(), tuple(result.gauge_refs), truth))
+        return result
+
+    def hand_back_all(*args, **kwargs):
+        solved = batched(*args, **kwargs)
+        solved.hand_back(np.arange(len(solved)))
+        return solved
+
+    sim = {"dim": dim, "n_anchors": n, "anchor_motion": {"model": motion}}
+    if nlos is not None:
+        sim["ranging"] = {"nlos_probability": nlos, "dropout_probability": 0.0}
+    system.calibrate_anchors, system.later_calibrations = recording_solve, hand_back_all
+    try:
+        for seed in range(SEED_BASE, SEED_BASE + episodes):
+            env = parallel_env(sim=sim, max_cycles=steps)
+            env.reset(seed=seed)
+            current["system"] = env.system
+            for t in range(steps):
+                env.step({a: int(t % 10 == 0) for a in env.agents})
+            current.clear()
+    finally:
+        system.calibrate_anchors, system.later_calibrations = solve, batched
+    nees = []
+    for x, cov, refs, truth in rounds:
+        rot, trans = paper_frame(x, refs)
+        est = x @ rot.T + trans
+        blocks = np.kron(np.eye(n), rot)
+        c = blocks @ cov @ blocks.T
+        rot_t, trans_t = paper_frame(truth, refs)
+        true = truth @ rot_t.T + trans_t
+        mirrored = true.copy()
+        mirrored[:, -1] *= -1.0  # the frame's sign rule is a convention: the estimate's side
+        if np.abs(mirrored - est).sum() < np.abs(true - est).sum():
+            true = mirrored
+        e = (est - true).ravel()
+        nees.append(float(e @ np.linalg.pinv(c, rcond=1e-12, hermitian=True) @ e))
+    return np.array(nees)
+
+
+def main() -> None:
+    from scipy.stats import chi2
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--quick", action="store_true")
+    a = p.parse_args()
+    episodes, steps = (2, 100) if a.quick else (6, 300)
+    started = time.perf_counter()
+    figures, rows = {"episodes_per_config": episodes, "steps_per_episode": steps}, []
+    for dim, n, motion, nlos in CONFIGS:
+        nees = run_config(dim, n, motion, nlos, episodes, steps)
+        rank = n * dim - dim * (dim + 1) // 2
+        cfg = name_of(dim, n, motion, nlos)
+        over = float(nees.mean() / rank) if len(nees) else float("nan")
+        median = float(np.median(nees) / rank) if len(nees) else float("nan")
+        beyond = float(np.mean(nees > chi2.ppf(0.999, rank))) if len(nees) else float("nan")
+        figures.update({f"nees_over_rank_{cfg}": over, f"nees_median_over_rank_{cfg}": median,
+                        f"nees_beyond_999_share_{cfg}": beyond, f"rounds_{cfg}": len(nees)})
+        rows.append([cfg, len(nees), rank, over, median, beyond])
+    figures["bench_seconds"] = time.perf_counter() - started
+    print_table("later calibrations in the env: NEES / rank (1 = honest), share beyond the 99.9 % quantile",
+                ["config", "rounds", "rank", "mean/rank", "median/rank", "beyond 99.9 %"], rows)
+    write_results("bench_consistency_quick" if a.quick else "bench_consistency", figures, a.quick)
+
+
+if __name__ == "__main__":
+    main()
