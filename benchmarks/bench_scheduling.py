@@ -121,10 +121,11 @@ def reusable(row: dict | None, seeds: list[int], a, config: dict) -> dict | None
     retune = set(a.retune or ())
     best_family = row["best_heuristic"].partition(":")[0]
     kept = [f for f in GRIDS if f not in retune]
-    if not kept:
+    recorded = row["tuning"]["best_of_family"]
+    if not kept or any(f not in recorded for f in kept):  # a family the earlier run did not tune
         return None
-    base = row["tuning"]["best_of_family"]["per_anchor_threshold" if not retune else kept[0]] \
-        if "per_anchor_threshold" in row["tuning"]["best_of_family"] else row["best_heuristic"]
+    # the per-anchor rule the learned policy stands on, or (with retuned families) one kept family
+    base = recorded[kept[0] if retune else "per_anchor_threshold"]
     jobs = [] if best_family in retune else [(row["best_heuristic"], s, config) for s in check]
     if base != row["best_heuristic"]:
         jobs += [(base, s, config) for s in range(v0, v1 + 1)]
@@ -255,7 +256,9 @@ def main() -> None:
             tuned = tune_scenario(config, list(range(v0, v0 + a.val_seeds)), a.workers, f"retune {name}",
                                   known=reused["tuning"]["validation_returns"], families=a.retune)
             best = tuned["best"]
-            if best != reused["best_heuristic"]:  # a retuned family now wins: its test episodes are new
+            # test episodes are new when the best changed, or when its family's policy did (the
+            # same spec string under a changed rule)
+            if best != reused["best_heuristic"] or best.partition(":")[0] in a.retune:
                 reused = {**reused, "stale_heuristic": True}
         elif reused is not None:
             tuned, best = reused["tuning"], reused["best_heuristic"]
