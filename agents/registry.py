@@ -39,8 +39,8 @@ def _learned(param: str, dt_s: float):
     # '@' followed by more path (a directory named with '@') is part of the model's path
     if at and "/" not in tail and not tail.endswith(".zip"):
         path, threshold = head, tail
-        if threshold.startswith("drift:"):
-            measure, threshold = "drift", threshold.removeprefix("drift:")
+        if threshold.startswith(("drift:", "total:")):  # the base rule's measure (default: total)
+            measure, _, threshold = threshold.partition(":")
         if not threshold:
             raise ValueError(f"learned:{param}: '@' needs a base threshold in metres, e.g. learned:anchor_set@0.3")
         try:

@@ -251,6 +251,7 @@ def test_the_learned_spec_names_the_base_rule():
     total, drift = make_policy("learned:anchor_set@0.25"), make_policy("learned:anchor_set@drift:0.4")
     assert (total.base_threshold_m, total.base_measure) == (0.25, "total")
     assert (drift.base_threshold_m, drift.base_measure) == (0.4, "drift")
+    assert make_policy("learned:anchor_set@total:0.25").base_measure == "total"
     with pytest.raises(PolicySpecError, match="needs a base threshold"):
         make_policy("learned:anchor_set@drift:")
     with pytest.raises(PolicySpecError, match="must be a number"):
