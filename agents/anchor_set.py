@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from uwb_env.agents.per_anchor import MEASURES, team_vote, threshold_actions
+from uwb_env.agents.per_anchor import check_measure, team_vote, threshold_actions
 from uwb_env.system import OBS_FIELDS
 
 _SUMMARIZED = OBS_FIELDS[:6]  # the team-level flags (calibrating, progress) are the same for all
@@ -126,9 +126,7 @@ class AnchorSetPolicy:
         if not (np.isfinite(base_threshold_m) and base_threshold_m > 0):
             raise ValueError(f"base_threshold_m={base_threshold_m!r}: must be finite and > 0")
         self.base_threshold_m = float(base_threshold_m)
-        if base_measure not in MEASURES:
-            raise ValueError(f"base_measure={base_measure!r}: must be one of {MEASURES}")
-        self.base_measure = base_measure
+        self.base_measure = check_measure(base_measure)
         self.prior_logit = float(getattr(policy, "prior_logit", 0.0))
         # Deterministic actions are the argmax of the logits: one small MLP, evaluated in numpy
         # (SB3's predict costs ~1-3 ms a step in tensor conversions; this ~20 us, same actions).

@@ -13,6 +13,24 @@ NOTHING, RELOCATE_ME, TEAM_ROUND = 0, 1, 2
 
 
 MEASURES = ("total", "drift")
+# the per-anchor heuristics' spec names -> the measure their rule compares
+FAMILIES = {"per_anchor_threshold": "total", "per_anchor_drift": "drift"}
+
+
+def check_measure(measure: str) -> str:
+    if measure not in MEASURES:
+        raise ValueError(f"measure={measure!r}: must be one of {MEASURES}")
+    return measure
+
+
+def learned_base(spec: str) -> str:
+    """A per-anchor heuristic's spec -> the learned residual's base on the same rule (the part
+    after ``@`` in ``learned:<model>@...``): ``per_anchor_threshold:T`` -> ``T``,
+    ``per_anchor_drift:T`` -> ``drift:T``."""
+    family, _, value = spec.partition(":")
+    if family not in FAMILIES:
+        raise ValueError(f"spec={spec!r}: not a per-anchor heuristic ({', '.join(FAMILIES)})")
+    return value if FAMILIES[family] == "total" else f"{FAMILIES[family]}:{value}"
 
 
 def threshold_actions(predicted_std_m, calibration_std_m, threshold_m, team_fraction: float = 0.5,
@@ -35,8 +53,7 @@ def threshold_actions(predicted_std_m, calibration_std_m, threshold_m, team_frac
       When a calibration is poor by chance (fast robots: rounds fit poorly), the total rule's
       early repeat pays instead; which rule fits a deployment is tuned like the threshold.
     """
-    if measure not in MEASURES:
-        raise ValueError(f"measure={measure!r}: must be one of {MEASURES}")
+    check_measure(measure)
     thr = float(threshold_m) if np.ndim(threshold_m) == 0 else np.asarray(threshold_m, dtype=np.float64)[..., None]
     if measure == "total":
         pred = np.asarray(predicted_std_m)
@@ -73,10 +90,8 @@ class PerAnchorThresholdPolicy:
         self.threshold_m = _positive("threshold_m", threshold_m)
         if not 0 < team_fraction <= 1:
             raise ValueError(f"team_fraction={team_fraction!r}: must be in (0, 1]")
-        if measure not in MEASURES:
-            raise ValueError(f"measure={measure!r}: must be one of {MEASURES}")
         self.team_fraction = team_fraction
-        self.measure = measure
+        self.measure = check_measure(measure)
 
     def reset(self, seed: int | None = None) -> None:
         pass

@@ -49,17 +49,17 @@ GRIDS = {
     # the same rule on the drift since the anchor's last calibration (agents/per_anchor.py)
     "per_anchor_drift": (0.08, 0.15, 0.3, 0.6, 1.2),
 }
-PER_ANCHOR = ("per_anchor_threshold", "per_anchor_drift")  # the learned residual's candidate base rules
+INTEGER = {"fixed"}
 
 
 def learned_base(tuned: dict) -> str:
     """The learned residual's base: the per-anchor family that scored higher on the validation
     seeds, at its tuned threshold -> the ``@`` part of its spec (``T`` or ``drift:T``)."""
+    from uwb_env.agents import per_anchor
+
     returns = tuned["validation_returns"]
-    best = max((tuned["best_of_family"][f] for f in PER_ANCHOR if f in tuned["best_of_family"]), key=returns.get)
-    family, _, value = best.partition(":")
-    return value if family == "per_anchor_threshold" else f"drift:{value}"
-INTEGER = {"fixed"}
+    return per_anchor.learned_base(max((tuned["best_of_family"][f] for f in per_anchor.FAMILIES
+                                        if f in tuned["best_of_family"]), key=returns.get))
 
 
 def spec_of(family: str, value: float) -> str:

@@ -54,15 +54,15 @@ def shipped_learned_spec(tuned: Path = DEFAULT_TUNED) -> str:
     rule tuned for the default scenario: of ``tuned``'s per-anchor families (the predicted std,
     the drift since calibration) the one with the higher validation return, at its threshold
     (the model's default base when the file has none)."""
+    from uwb_env.agents.per_anchor import FAMILIES, learned_base
+
     try:
         record = json.loads(Path(tuned).read_text())
-        names = [f for f in ("per_anchor_threshold", "per_anchor_drift") if f in record["tuned"]]
+        names = [f for f in FAMILIES if f in record["tuned"]]
         family = max(names, key=lambda f: record.get("families", {}).get(f, {}).get("best_return", -np.inf))
-        spec = record["tuned"][family]
+        return f"learned:{SHIPPED_LEARNED}@{learned_base(record['tuned'][family])}"
     except (OSError, KeyError, ValueError):
         return f"learned:{SHIPPED_LEARNED}"
-    value = spec.partition(":")[2]
-    return f"learned:{SHIPPED_LEARNED}@{value if family == 'per_anchor_threshold' else 'drift:' + value}"
 
 
 def default_policies() -> list[str]:

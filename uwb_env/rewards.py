@@ -11,9 +11,9 @@ REWARD_TERMS = ("tag_error", "anchor_error", "calibration_time", "calibration_st
 def reward_terms(config, tag_error_m, anchor_error_m, calibrating_fraction, round_started) -> dict:
     """The reward's terms from ``config`` (an ``EnvConfig``'s weights): floats for one env, or
     (B,) arrays for a batch (``round_started`` bool). The reward is their sum."""
-    return {
-        "tag_error": -config.tag_error_weight * tag_error_m,
-        "anchor_error": -config.anchor_error_weight * anchor_error_m,
-        "calibration_time": -config.calibration_time_weight * calibrating_fraction,
-        "calibration_start": -config.calibration_start_cost * round_started,
-    }
+    return dict(zip(REWARD_TERMS, (
+        -config.tag_error_weight * tag_error_m,
+        -config.anchor_error_weight * anchor_error_m,
+        -config.calibration_time_weight * calibrating_fraction,
+        -config.calibration_start_cost * round_started,
+    ), strict=True))
