@@ -20,7 +20,8 @@ figures are lower bounds; 6 episodes per configuration give rough magnitudes (no
 An honest covariance gives a mean NEES equal to its rank, N dim - dim (dim + 1) / 2, and 0.1 %
 of rounds beyond the chi-square 99.9 % quantile. Figures per configuration (``<cfg>`` =
 ``{2d,3d}_n<N>_{static,patrol}_{clean,nlos}``): ``nees_over_rank_<cfg>`` (mean NEES / rank),
-``nees_median_over_rank_<cfg>``, ``nees_beyond_999_share_<cfg>``, ``rounds_<cfg>``.
+``nees_median_over_rank_<cfg>``, ``nees_beyond_999_share_<cfg>``, ``rounds_<cfg>``, and the
+scored rounds' anchor RMSE in the gauge frame, ``shape_rmse_m_<cfg>`` (what the NEES weighs).
 
     python benchmarks/bench_consistency.py [--quick]
 
@@ -54,11 +55,12 @@ def name_of(dim: int, n: int, motion: str, nlos) -> str:
     return f"{dim}d_n{n}_{motion}_{'clean' if nlos == 0.0 else 'nlos'}"
 
 
-def run_config(dim: int, n: int, motion: str, nlos, episodes: int, steps: int) -> np.ndarray:
-    """NEES of every ok, unambiguous later round of ``episodes`` episodes."""
+def run_config(dim: int, n: int, motion: str, nlos, episodes: int, steps: int) -> tuple[np.ndarray, np.ndarray]:
+    """NEES and mean squared anchor error (m^2) of every ok, unambiguous later round of
+    ``episodes`` episodes."""
     import uwb_env.system as system
     from uwb_env import parallel_env
-    from uwb_env.localization.alignment import paper_frame
+    from uwb_env.localization.bounds import gauge_nees
 
     rounds = []
     current = {}
@@ -91,21 +93,12 @@ def run_config(dim: int, n: int, motion: str, nlos, episodes: int, steps: int) -
             current.clear()
     finally:
         system.calibrate_anchors, system.later_calibrations = solve, batched
-    nees = []
+    nees, sq = [], []
     for x, cov, refs, truth in rounds:
-        rot, trans = paper_frame(x, refs)
-        est = x @ rot.T + trans
-        blocks = np.kron(np.eye(n), rot)
-        c = blocks @ cov @ blocks.T
-        rot_t, trans_t = paper_frame(truth, refs)
-        true = truth @ rot_t.T + trans_t
-        if float(est[:, -1] @ true[:, -1]) < 0.0:
-            # the frame's sign rule (the others' last coordinate summing positive) picked the
-            # other handedness for the truth (near-coplanar layouts): the estimate's convention
-            true = true * np.r_[np.ones(dim - 1), -1.0]
-        e = (est - true).ravel()
-        nees.append(float(e @ np.linalg.pinv(c, rcond=1e-12, hermitian=True) @ e))
-    return np.array(nees)
+        value, err = gauge_nees(x, cov, refs, truth)
+        nees.append(value)
+        sq.append(float(np.sum(err**2)) / n)
+    return np.array(nees), np.array(sq)
 
 
 def main() -> None:
@@ -118,18 +111,20 @@ def main() -> None:
     started = time.perf_counter()
     figures, rows = {"episodes_per_config": episodes, "steps_per_episode": steps}, []
     for dim, n, motion, nlos in CONFIGS:
-        nees = run_config(dim, n, motion, nlos, episodes, steps)
+        nees, sq = run_config(dim, n, motion, nlos, episodes, steps)
         rank = n * dim - dim * (dim + 1) // 2
         cfg = name_of(dim, n, motion, nlos)
         over = float(nees.mean() / rank) if len(nees) else float("nan")
         median = float(np.median(nees) / rank) if len(nees) else float("nan")
         beyond = float(np.mean(nees > chi2.ppf(0.999, rank))) if len(nees) else float("nan")
+        rmse = float(np.sqrt(sq.mean())) if len(sq) else float("nan")
         figures.update({f"nees_over_rank_{cfg}": over, f"nees_median_over_rank_{cfg}": median,
-                        f"nees_beyond_999_share_{cfg}": beyond, f"rounds_{cfg}": len(nees)})
-        rows.append([cfg, len(nees), rank, over, median, beyond])
+                        f"nees_beyond_999_share_{cfg}": beyond, f"rounds_{cfg}": len(nees),
+                        f"shape_rmse_m_{cfg}": rmse})
+        rows.append([cfg, len(nees), rank, over, median, beyond, rmse])
     figures["bench_seconds"] = time.perf_counter() - started
     print_table("later calibrations in the env: NEES / rank (1 = honest), share beyond the 99.9 % quantile",
-                ["config", "rounds", "rank", "mean/rank", "median/rank", "beyond 99.9 %"], rows)
+                ["config", "rounds", "rank", "mean/rank", "median/rank", "beyond 99.9 %", "shape RMSE m"], rows)
     write_results("bench_consistency_quick" if a.quick else "bench_consistency", figures, a.quick)
 
 

@@ -131,6 +131,34 @@ def test_pooled_rounds_add_counts_and_weight_means():
     np.testing.assert_allclose(p.mean_m[0, 1], (5 * a.mean_m[0, 1] + 15 * b.mean_m[0, 1]) / 20)
 
 
+def test_carry_variance_adds_to_each_pair_and_pools_with_the_means():
+    # The error of carrying a pair's mean to the round's midpoint does not average down with K:
+    # it adds to the pair's variance (both directions weighted as their means) and so to the
+    # solution's covariance.
+    rng = np.random.default_rng(1)
+    x = rng.uniform(0, 10, (5, 2))
+    m = noisy_round(x, rng, 0.05, 5)
+    carry = rng.uniform(0.0, 4e-3, (5, 5))
+    carried = RangeMatrix(m.mean_m, m.std_m, m.count, carry)
+    pairs, mean, var = m.symmetric(std_m=0.05)
+    _, mean_c, var_c = carried.symmetric(std_m=0.05)
+    np.testing.assert_array_equal(mean_c, mean)
+    i, j = pairs.T
+    np.testing.assert_allclose(var_c, var + 0.5 * (carry[i, j] + carry[j, i]))
+    # the general path (a missing direction) gives the same pair variances
+    gap = m.count.copy()
+    gap[0, 1] = 0
+    _, _, var_gap = RangeMatrix(m.mean_m, m.std_m, gap, carry)._symmetric_general(0.0, 0.05)
+    assert var_gap[0] == pytest.approx(0.05**2 / 5 + carry[1, 0])
+    np.testing.assert_allclose(var_gap[1:], var_c[1:])
+    plain = calibrate_anchors(m, range_std_m=0.05)
+    wide = calibrate_anchors(carried, range_std_m=0.05)
+    assert np.all(wide.position_std_m()[2:] > plain.position_std_m()[2:])
+    pooled = pool_rounds(carried, RangeMatrix(m.mean_m, m.std_m, 3 * m.count, 2 * carry))
+    off = ~np.eye(5, dtype=bool)
+    np.testing.assert_allclose(pooled.carry_var_m2[off], 1.75 * carry[off])
+
+
 @pytest.mark.parametrize(
     "call, error, field",
     [
@@ -148,6 +176,11 @@ def test_pooled_rounds_add_counts_and_weight_means():
         (lambda d, m: RangeMatrix(m.mean_m, np.where(m.count > 0, np.inf, np.nan), m.count), InvalidRangeError,
          "std_m"),
         (lambda d, m: RangeMatrix(m.mean_m, -m.std_m, m.count), InvalidRangeError, "std_m"),
+        (lambda d, m: RangeMatrix(m.mean_m, m.std_m, m.count, np.zeros((3, 3))), InvalidRangeError, "carry_var_m2"),
+        (lambda d, m: RangeMatrix(m.mean_m, m.std_m, m.count, np.full(m.count.shape, -1e-4)), InvalidRangeError,
+         "carry_var_m2"),
+        (lambda d, m: RangeMatrix(m.mean_m, m.std_m, m.count, np.full(m.count.shape, np.nan)), InvalidRangeError,
+         "carry_var_m2"),
     ],
 )
 def test_bad_input_raises_a_typed_error_naming_the_field(call, error, field):

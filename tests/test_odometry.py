@@ -152,3 +152,30 @@ def test_restart_since_a_snapshot_of_some_robots_leaves_the_others(rng):
     after = odo.expected_drift_var_m2(2)
     np.testing.assert_array_equal(after[~mask], grown[~mask])
     assert np.all(after[mask] > 0) and np.all(after[mask] < before[mask])
+
+
+@pytest.mark.parametrize("model", ["distance", "uniform"])
+def test_drift_between_two_snapshots_is_the_prediction_restarted_at_the_first(rng, model):
+    # A round's carry variance is the drift between a pair's time and the midpoint: the same
+    # prediction as a restart at the earlier snapshot, without touching the robots' state.
+    cfg = OdometryConfig(model=model, scale_error_std=0.05, yaw_noise_std_rad_per_sqrt_m=0.03,
+                         yaw_noise_std_rad_per_rad=0.03, slip_rate_per_s=0.05)
+    odo = OdometryModel(cfg)
+    odo.reset(6, rng)
+
+    def drive(steps):
+        for _ in range(steps):
+            turn = 0.4 * rng.standard_normal(6)
+            odo.estimated_displacement(rng.normal(0, 0.2, (6, 2)), np.abs(turn), 0.2, rng)
+
+    drive(40)
+    odo.restart_drift()
+    drive(10)
+    earlier = odo.snapshot()
+    drive(7)
+    later = odo.snapshot()
+    between = odo.drift_var_between(earlier, later, dim=2)
+    assert np.all(between > 0)
+    assert odo.drift_var_between(later, later, dim=2) == pytest.approx(np.zeros(6), abs=1e-15)
+    odo.restart_drift(since=earlier)
+    np.testing.assert_allclose(between, odo.expected_drift_var_m2(2), rtol=1e-12)

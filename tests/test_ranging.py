@@ -46,6 +46,18 @@ def test_nlos_is_a_positive_bias_with_the_configured_rate(rng):
     assert resid.mean() == pytest.approx(0.2 * 0.5 / model.slope, abs=0.01)
 
 
+def test_corrected_range_std_includes_the_nlos_excess(rng):
+    # A calibration pair's mean averages K ranges of the mixture: its variance is the mixture's
+    # second moment over K, not the Gaussian part's (that made later calibrations ~3x
+    # overconfident under the default radio).
+    clean = RangeModel(RangingConfig(nlos_probability=0.0))
+    assert clean.corrected_range_std_m == pytest.approx(clean.corrected_noise_std_m)
+    model = RangeModel(RangingConfig(nlos_probability=0.1, nlos_bias_mean_m=0.4, dropout_probability=0.0))
+    corrected = model.correct(model.measure(np.full(200_000, 6.0), rng))
+    assert corrected.std() == pytest.approx(model.corrected_range_std_m, rel=0.02)
+    assert model.corrected_range_std_m > 2 * model.corrected_noise_std_m
+
+
 def test_dropout_and_max_range(rng):
     model = RangeModel(RangingConfig(dropout_probability=0.1, max_range_m=10.0))
     out = model.measure(np.array([5.0] * 20000 + [11.0] * 10), rng)

@@ -65,6 +65,7 @@ class BatchedSystem:
         self._template = LocalizationSystem(self.config)  # feature bounds, range model, timing
         self.range_model = self._template.range_model
         self.range_std_m = self._template.range_std_m
+        self.pair_range_std_m = self._template.pair_range_std_m
         self.timing = self._template.world.timing
         self.dt_s = sim.dt_s
         self.motion = MotionModel([(sim.anchor_motion, self.B * self.N), (sim.tag_motion, self.B * self.M)],
@@ -117,9 +118,9 @@ class BatchedSystem:
             self._advance_world()
         path = cohort.path
         true_mid, est_mid, drift_mid = path.midpoint_truth(), path.midpoint_estimates(), path.midpoint_drift()
-        mean, std, count = self._round_statistics(cohort)
+        mean, std, count, carry = self._round_statistics(cohort)
         est_now = self.anchors_est
-        complete, pairs, dist, var = symmetric_arrays(mean, count, self.range_std_m)
+        complete, pairs, dist, var = symmetric_arrays(mean, count, self.pair_range_std_m, carry)
         results: list = [None] * B
         batched = np.zeros(B, dtype=bool)
         rows = np.flatnonzero(complete)
@@ -130,8 +131,9 @@ class BatchedSystem:
         for k in range(B):
             if not batched[k]:  # thin layouts, missing pairs, poor fits: the full solver's starts
                 try:
-                    results[k] = calibrate_anchors(RangeMatrix(mean[k], std[k], count[k]), dim=2, loss=solver.loss,
-                                                   f_scale=solver.f_scale_sigmas, range_std_m=self.range_std_m)
+                    results[k] = calibrate_anchors(RangeMatrix(mean[k], std[k], count[k], _row(carry, k)), dim=2,
+                                                   loss=solver.loss,
+                                                   f_scale=solver.f_scale_sigmas, range_std_m=self.pair_range_std_m)
                 except LocalizationError:  # e.g. dropouts disconnected the graph: no shape this round
                     results[k] = None
         # A copy without a usable first calibration keeps its starting estimates in the world
@@ -221,22 +223,24 @@ class BatchedSystem:
         del self._cohorts[int(self._cohort_of[cohort.copies[0]])]
         self._cohort_of[cohort.copies] = -1
 
-    def _round_statistics(self, cohort: RoundCohort) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Bias-corrected per-pair mean (carried to the round's midpoint), std and count of a
-        finished cohort, (C, N, N) each: the single env's round result, for all copies at once."""
+    def _round_statistics(self, cohort: RoundCohort):
+        """Bias-corrected per-pair mean (carried to the round's midpoint), std, count and carry
+        variance (or None) of a finished cohort, (C, N, N) each: the single env's round result,
+        for all copies at once."""
         mean, std, count = cohort.pair_statistics()
         mean, std = self.range_model.correct(mean), self.range_model.correct_std(std)
-        return cohort.path.carry(mean, cohort.pair_mean_times_s()), std, count
+        times = cohort.pair_mean_times_s()
+        return cohort.path.carry(mean, times), std, count, cohort.path.carry_var_m2(times, self.odometry)
 
     def _finish_cohort(self, cohort: RoundCohort) -> np.ndarray:
         """Solve the rounds of a finished cohort: the usual case (every pair, a fit the verdict
         accepts) in one batched Gauss-Newton, the rest with the full solver per copy (the same
         answers: the batched solve hands back whatever needs more). Returns ok per copy."""
         copies = cohort.copies
-        mean, std, count = self._round_statistics(cohort)
+        mean, std, count, carry = self._round_statistics(cohort)
         self._end_cohort(cohort)
         est_mid, drift_mid = cohort.path.midpoint_estimates(), cohort.path.midpoint_drift()
-        complete, pairs, dist, var = symmetric_arrays(mean, count, self.range_std_m)
+        complete, pairs, dist, var = symmetric_arrays(mean, count, self.pair_range_std_m, carry)
         ok = np.zeros(len(copies), dtype=bool)
         rows = np.flatnonzero(complete)
         if len(rows):
@@ -254,7 +258,7 @@ class BatchedSystem:
             if ok[row]:
                 continue
             try:
-                matrix = RangeMatrix(mean[row], std[row], count[row])
+                matrix = RangeMatrix(mean[row], std[row], count[row], _row(carry, row))
             except LocalizationError:  # as the single env: keep odometry, report the failure
                 continue
             ok[row] = self._finish_round(k, matrix, est_mid[row], _drift_rows(drift_mid, self.N, [row]))
@@ -265,7 +269,7 @@ class BatchedSystem:
         try:
             result = calibrate_anchors(matrix, dim=2, prior=est_mid,
                                        gauge=solver.gauge, loss=solver.loss, f_scale=solver.f_scale_sigmas,
-                                       range_std_m=self.range_std_m,
+                                       range_std_m=self.pair_range_std_m,
                                        prior_std_m=np.sqrt(np.maximum(self._predicted_var_of(k), self.range_std_m**2)))
         except LocalizationError:
             return False
@@ -386,3 +390,7 @@ def _drift_rows(drift: dict, n: int, rows) -> dict:
     """The odometry snapshot of a cohort (its copies' robots, copy-major) for some of its
     copies (``rows``, increasing): aligned with ``BatchedSystem._robots_of`` of those copies."""
     return {name: v.reshape(-1, n)[np.asarray(rows)].reshape(-1) for name, v in drift.items()}
+
+
+def _row(array: np.ndarray | None, k: int) -> np.ndarray | None:
+    return None if array is None else array[k]

@@ -31,11 +31,15 @@ class RangeMatrix:
         mean_m: (n, n) mean range; NaN where no measurement arrived (and on the diagonal).
         std_m: (n, n) sample standard deviation of the K ranges (0 when K == 1).
         count: (n, n) number of ranges that arrived.
+        carry_var_m2: optional (n, n) variance added to each mean beyond its ranges' noise, not
+            reduced by the count: the error of carrying the mean to another instant along the
+            odometry (``RoundPath.carry_var_m2``). None: 0.
     """
 
     mean_m: np.ndarray
     std_m: np.ndarray
     count: np.ndarray
+    carry_var_m2: np.ndarray | None = None
 
     def __post_init__(self):
         # Validated once here, so every consumer (solver, recorder, features) can trust it.
@@ -66,6 +70,17 @@ class RangeMatrix:
         if bad_std.any():
             i, j = np.argwhere(bad_std)[0]
             raise InvalidRangeError(f"RangeMatrix.std_m[{i}, {j}] = {std[i, j]!r}: must be finite and >= 0")
+        if self.carry_var_m2 is not None:
+            carry = np.asarray(self.carry_var_m2, dtype=float)
+            if carry.shape != mean.shape:
+                raise InvalidRangeError(
+                    f"RangeMatrix.carry_var_m2: shape {carry.shape} does not match mean_m's {mean.shape}")
+            bad_carry = measured & ~((carry >= 0) & np.isfinite(carry))
+            if bad_carry.any():
+                i, j = np.argwhere(bad_carry)[0]
+                raise InvalidRangeError(
+                    f"RangeMatrix.carry_var_m2[{i}, {j}] = {carry[i, j]!r}: must be finite and >= 0")
+            object.__setattr__(self, "carry_var_m2", carry)
         object.__setattr__(self, "mean_m", mean)
         object.__setattr__(self, "std_m", std)
         object.__setattr__(self, "count", count)
@@ -115,7 +130,10 @@ class RangeMatrix:
         total = info_a + info_b
         if not total.min() > 0:  # NaN stds
             return None
-        return pairs, (info_a * ma + info_b * mb) / total, 1.0 / total
+        var = 1.0 / total
+        if self.carry_var_m2 is not None:
+            var = var + _carried(self.carry_var_m2, upper, lower, info_a, info_b, total)
+        return pairs, (info_a * ma + info_b * mb) / total, var
 
     def _symmetric_general(self, min_std_m: float, std_m: float | None):
         pairs, upper, lower = _pair_index(self.n_anchors)
@@ -139,6 +157,8 @@ class RangeMatrix:
                 k = valid.sum(axis=0)
                 mean = np.where(flat, means.sum(axis=0) / np.maximum(k, 1), mean)
             var = np.where(total > 0, 1.0 / total, np.inf)
+            if self.carry_var_m2 is not None:
+                var = var + np.nan_to_num(_carried(self.carry_var_m2, upper, lower, info[0], info[1], total))
         keep = valid.any(axis=0)
         if keep.all():
             return pairs, mean, var
@@ -161,9 +181,17 @@ class RangeMatrix:
         return RangeMatrix(mean.reshape(n, n), std.reshape(n, n), count.reshape(n, n).astype(int))
 
 
+def _carried(carry_var_m2, upper, lower, info_a, info_b, total):
+    """A pair's carry variance: the two directions' weighted as their means are (their carry
+    errors taken as fully dependent, which this bounds from above)."""
+    flat = carry_var_m2.ravel()
+    return (info_a * np.nan_to_num(flat.take(upper)) + info_b * np.nan_to_num(flat.take(lower))) / total
+
+
 def pool_rounds(a: RangeMatrix, b: RangeMatrix) -> RangeMatrix:
     """Two rounds of the same anchors as one: per ordered pair, counts add, means are count-
-    weighted and the std is the pooled sample std of all exchanges."""
+    weighted and the std is the pooled sample std of all exchanges; carry variances are count-
+    weighted as the means are (fully dependent: an upper bound)."""
     if a.mean_m.shape != b.mean_m.shape:
         from uwb_env.localization.errors import InvalidRangeError
 
@@ -177,4 +205,9 @@ def pool_rounds(a: RangeMatrix, b: RangeMatrix) -> RangeMatrix:
         ss = (np.maximum(ca - 1, 0) * sa**2 + np.maximum(cb - 1, 0) * sb**2
               + ca * (ma - mean) ** 2 + cb * (mb - mean) ** 2)
         std = np.where(count > 0, np.sqrt(ss / np.maximum(count - 1, 1)), np.nan)
-    return RangeMatrix(mean, std, count.astype(int))
+        carry = None
+        if a.carry_var_m2 is not None or b.carry_var_m2 is not None:
+            va = np.zeros_like(mean) if a.carry_var_m2 is None else np.where(ca > 0, a.carry_var_m2, 0.0)
+            vb = np.zeros_like(mean) if b.carry_var_m2 is None else np.where(cb > 0, b.carry_var_m2, 0.0)
+            carry = np.where(count > 0, (ca * va + cb * vb) / count, 0.0)
+    return RangeMatrix(mean, std, count.astype(int), carry)

@@ -92,7 +92,12 @@ class LocalizationSystem:
         self.n_anchors = self.config.sim.n_anchors
         self.n_tags = self.config.sim.n_tags
         self.dim = self.config.sim.dim
+        # one corrected range's Gaussian noise (tag fixes, covariance floors) and, for the
+        # K-averaged pair means of calibration rounds, its std with the NLOS excess's second
+        # moment (without it a calibration's covariance is ~3x overconfident in NEES under
+        # the default radio: benchmarks/bench_consistency.py)
         self.range_std_m = self.range_model.corrected_noise_std_m
+        self.pair_range_std_m = self.range_model.corrected_range_std_m
         self.obs_size = self.dim + len(OBS_FIELDS)
         self._eye = np.eye(self.dim)
         self._bounds = self.feature_bounds()
@@ -180,12 +185,12 @@ class LocalizationSystem:
             # every round carried to the midpoint of all of them (the solution's moment)
             pooled = None
             for matrix, times in rounds:
-                carried = replace(matrix, mean_m=self._round_path.carry(matrix.mean_m, times))
+                carried = self._carried(matrix, times)
                 pooled = carried if pooled is None else pool_rounds(pooled, carried)
             try:
                 result = calibrate_anchors(
                     pooled, dim=self.dim, loss=cfg.solver.loss,
-                    f_scale=cfg.solver.f_scale_sigmas, range_std_m=self.range_std_m,
+                    f_scale=cfg.solver.f_scale_sigmas, range_std_m=self.pair_range_std_m,
                 )
             except LocalizationError as err:
                 last = err
@@ -286,7 +291,7 @@ class LocalizationSystem:
             if result is None:
                 result = calibrate_anchors(
                     matrix, dim=self.dim, prior=est_mid, gauge=solver.gauge, loss=solver.loss,
-                    f_scale=solver.f_scale_sigmas, range_std_m=self.range_std_m, prior_std_m=prior_std,
+                    f_scale=solver.f_scale_sigmas, range_std_m=self.pair_range_std_m, prior_std_m=prior_std,
                 )
         except LocalizationError as err:  # e.g. dropouts disconnected the graph: keep odometry
             return f"{type(err).__name__}: {err}"
@@ -300,7 +305,9 @@ class LocalizationSystem:
         """``batched_calibration.later_calibrations`` for this team alone, as the batched env
         calls it: its result, or None where the full solver would do more (a missing pair, a
         rejected fit it can work on, an ambiguous shape)."""
-        complete, pairs, dist, var = symmetric_arrays(matrix.mean_m[None], matrix.count[None], self.range_std_m)
+        carry = None if matrix.carry_var_m2 is None else matrix.carry_var_m2[None]
+        complete, pairs, dist, var = symmetric_arrays(matrix.mean_m[None], matrix.count[None], self.pair_range_std_m,
+                                                      carry)
         if not complete[0]:
             return None
         solver = self.config.solver
@@ -320,7 +327,13 @@ class LocalizationSystem:
         return pair_mean_times_s(self.n_anchors, times, finished.initiator, finished.responder)
 
     def _to_round_midpoint(self, matrix, finished):
-        return replace(matrix, mean_m=self._round_path.carry(matrix.mean_m, self._pair_times(finished)))
+        return self._carried(matrix, self._pair_times(finished))
+
+    def _carried(self, matrix, pair_times_s):
+        """``matrix`` carried to the round path's midpoint, with the variance that adds."""
+        path = self._round_path
+        return replace(matrix, mean_m=path.carry(matrix.mean_m, pair_times_s),
+                       carry_var_m2=path.carry_var_m2(pair_times_s, self.world.odometry))
 
     def _finish_anchor_round(self, finished) -> str | None:
         """One anchor re-located against the others (their estimates and covariances as known up
@@ -334,7 +347,10 @@ class LocalizationSystem:
             matrix = self._to_round_midpoint(self.world.round_correction.correct_matrix(finished.result()), finished)
             count = matrix.count[i, others]
             ranges = np.where(count > 0, matrix.mean_m[i, others], np.nan)
-            res = relocate_anchor(ranges, est_mid[others], self.range_std_m**2 / np.maximum(count, 1),
+            var = self.pair_range_std_m**2 / np.maximum(count, 1)
+            if matrix.carry_var_m2 is not None:
+                var = var + matrix.carry_var_m2[i, others]
+            res = relocate_anchor(ranges, est_mid[others], var,
                                   others_covariance=cov[others], prior=est_mid[i], prior_covariance=cov[i])
         except LocalizationError as err:
             return f"{type(err).__name__}: {err}"

@@ -370,10 +370,12 @@ def _upper_pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
     return iu, ju
 
 
-def symmetric_arrays(mean_m: np.ndarray, count: np.ndarray, range_std_m: float):
+def symmetric_arrays(mean_m: np.ndarray, count: np.ndarray, range_std_m: float,
+                     carry_var_m2: np.ndarray | None = None):
     """``RangeMatrix.complete_symmetric(std_m=range_std_m)`` for (K, N, N) means and counts at
-    once: (complete (K,) bool, pairs (P, 2), dist (K, P), var (K, P)); a team is complete when
-    every ordered pair was measured with a finite mean >= the solver's negative tolerance."""
+    once (and the matrices' (K, N, N) ``carry_var_m2``, or None): (complete (K,) bool, pairs
+    (P, 2), dist (K, P), var (K, P)); a team is complete when every ordered pair was measured
+    with a finite mean >= the solver's negative tolerance."""
     from uwb_env.measurements import NEGATIVE_RANGE_TOLERANCE_M
 
     n = mean_m.shape[1]
@@ -386,7 +388,10 @@ def symmetric_arrays(mean_m: np.ndarray, count: np.ndarray, range_std_m: float):
     total = (ca + cb) / range_std_m**2
     with np.errstate(invalid="ignore", divide="ignore"):
         dist = (ca * ma + cb * mb) / (ca + cb)
-    return complete, np.column_stack([iu, ju]), dist, 1.0 / np.maximum(total, 1e-300)
+        var = 1.0 / np.maximum(total, 1e-300)
+        if carry_var_m2 is not None:  # as RangeMatrix's: the directions weighted as their means
+            var = var + np.nan_to_num((ca * carry_var_m2[:, iu, ju] + cb * carry_var_m2[:, ju, iu]) / (ca + cb))
+    return complete, np.column_stack([iu, ju]), dist, var
 
 
 def first_calibrations(pairs: np.ndarray, dist: np.ndarray, var: np.ndarray, loss: str = "huber",

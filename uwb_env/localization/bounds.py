@@ -76,3 +76,26 @@ def crlb_anchors(
     bound = np.zeros_like(info)
     bound[np.ix_(free, free)] = np.linalg.inv(info_frame[np.ix_(free, free)])
     return bound
+
+
+def gauge_nees(positions: np.ndarray, covariance: np.ndarray, refs: tuple[int, ...],
+               truth: np.ndarray) -> tuple[float, np.ndarray]:
+    """Normalized estimation error squared of a calibration in its own gauge: estimate and truth
+    both in the paper frame of the gauge anchors ``refs`` (the estimate's frame handedness for
+    the truth too: near-degenerate layouts can flip the sign convention), the (N dim, N dim)
+    ``covariance`` rotated with the estimate. Returns (NEES, (N, dim) error); an honest
+    covariance gives a chi-square NEES with N dim - dim (dim + 1) / 2 degrees of freedom."""
+    from uwb_env.localization.alignment import paper_frame
+
+    n, dim = positions.shape
+    rot, trans = paper_frame(positions, refs)
+    est = positions @ rot.T + trans
+    blocks = np.kron(np.eye(n), rot)
+    cov = blocks @ covariance @ blocks.T
+    rot_t, trans_t = paper_frame(truth, refs)
+    true = truth @ rot_t.T + trans_t
+    if float(est[:, -1] @ true[:, -1]) < 0.0:
+        true = true * np.r_[np.ones(dim - 1), -1.0]
+    err = est - true
+    e = err.ravel()
+    return float(e @ np.linalg.pinv(cov, rcond=1e-12, hermitian=True) @ e), err

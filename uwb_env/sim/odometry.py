@@ -166,6 +166,26 @@ class OdometryModel:
         heading = carried * p2 - 2 * cross + self._sum_c[robots]
         return white + np.maximum(heading, 0.0)
 
+    def drift_var_between(self, earlier: dict, later: dict, dim: int = 2) -> np.ndarray:
+        """Expected variance (summed over axes) of the drift the robots of two :meth:`snapshot`
+        accrued between them: :meth:`expected_drift_var_m2` as if the drift had restarted at
+        ``earlier`` (the same re-centring as :meth:`restart_drift`), evaluated at ``later``.
+        Both snapshots must lie after the robots' last restart (e.g. within one round)."""
+        cfg = self.config
+        if self._uniform:
+            return (later["_steps"] - earlier["_steps"]) * dim * cfg.uniform_error_m**2 / 3.0
+        p_s = earlier["_net"]
+        d_a = later["_sum_a"] - earlier["_sum_a"]
+        d_b = later["_sum_b"] - earlier["_sum_b"]
+        p = later["_net"] - p_s
+        b = d_b - d_a * p_s
+        c = (later["_sum_c"] - earlier["_sum_c"] - 2.0 * (p_s.real * d_b.real + p_s.imag * d_b.imag)
+             + d_a * (p_s.real**2 + p_s.imag**2))
+        white = 2 * cfg.noise_std_m_per_sqrt_m**2 * self.expected_slip_gain2 * (later["_dist"] - earlier["_dist"])
+        carried = cfg.scale_error_std**2 + earlier["heading_var_rad2"] + d_a
+        heading = carried * (p.real**2 + p.imag**2) - 2 * (p.real * b.real + p.imag * b.imag) + c
+        return white + np.maximum(heading, 0.0)
+
     @property
     def expected_slip_gain2(self) -> float:
         """E[gain^2] of the noise over time: slips start at ``slip_rate_per_s`` while not slipping

@@ -90,6 +90,15 @@ class RangeModel:
         """Std of a single corrected (de-biased) range: noise / slope."""
         return self.noise_std_m / self.slope
 
+    @property
+    def corrected_range_std_m(self) -> float:
+        """Std of a single corrected range with the NLOS excess included: the Gaussian noise
+        and, with probability p, an Exp(mu) excess (variance p mu^2 (2 - p)), over the slope.
+        The mixture's tail is heavier than a Gaussian's: this is its second moment only."""
+        p, mu = self.config.nlos_probability, self.config.nlos_bias_mean_m
+        var = self.noise_std_m**2 + p * mu * mu * (2.0 - p)
+        return float(np.sqrt(var) / (self.slope if self.config.correct_bias else 1.0))
+
     def measure(self, true_m: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Raw measured ranges for true distances ``true_m`` (any shape); NaN where lost."""
         true = np.asarray(true_m, dtype=float)

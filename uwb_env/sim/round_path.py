@@ -98,6 +98,30 @@ class RoundPath:
         out[..., i, j] -= np.moveaxis(d_pair, 0, -1) - d_mid
         return out
 
+    def carry_var_m2(self, pair_times_s: np.ndarray | None, odometry) -> np.ndarray | None:
+        """(..., N, N) variance :meth:`carry` adds to each ordered pair's mean: the change of the
+        estimated distance stands in for the true one, so the odometry's drift between the
+        pair's time and the midpoint enters the carried range, along the pair (isotropic: the
+        drift's variance over dim per axis, as the predicted covariance takes it; the two ends
+        independent). Its variance is the odometry model's (``drift_var_between``) from the
+        step boundary nearest the midpoint to each boundary, linear in time between boundaries.
+        None where :meth:`carry` leaves the means unchanged or no drift was recorded."""
+        if pair_times_s is None or self.times_s[-1] <= self.times_s[0] or self.drifts[0] is None:
+            return None
+        shape = self.estimates[0].shape  # (..., N, dim)
+        n, dim = shape[-2], shape[-1]
+        k_mid = int(np.argmin(np.abs(np.asarray(self.times_s) - self.midpoint_time_s)))
+        mid = self.drifts[k_mid]
+        var = [odometry.drift_var_between(*((d, mid) if k <= k_mid else (mid, d)), dim=dim).reshape(shape[:-1])
+               for k, d in enumerate(self.drifts)]
+        i, j = np.nonzero(~np.eye(n, dtype=bool))
+        at_pair = self._at(var, pair_times_s[i, j])  # (P, ..., N)
+        p = np.arange(len(i))
+        pair_var = (at_pair[p, ..., i] + at_pair[p, ..., j]) / dim  # (P, ...)
+        out = np.zeros(shape[:-2] + (n, n))
+        out[..., i, j] = np.moveaxis(pair_var, 0, -1)
+        return out
+
 
 def pair_mean_times_s(n: int, times_s: np.ndarray, initiator: np.ndarray, responder: np.ndarray) -> np.ndarray:
     """(N, N) mean scheduled time of each ordered pair's exchanges (0 where none)."""
