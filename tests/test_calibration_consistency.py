@@ -42,12 +42,14 @@ def _later_nees(sim: dict, monkeypatch, episodes: int = 4, steps: int = 200) -> 
     return np.array(values)
 
 
-@pytest.mark.parametrize("radio", ["clean", "default"])
+# Without the carry term the clean case is at 2.6x; without the NLOS term the default radio is
+# at 2.3x and a harsher one (15 % NLOS) at 6.4x (a review's check of each term alone).
+@pytest.mark.parametrize("radio", [{"nlos_probability": 0.0, "dropout_probability": 0.0}, {},
+                                   {"nlos_probability": 0.15}], ids=["clean", "default", "harsh"])
 def test_later_calibrations_of_a_patrolling_team_are_consistent(radio, monkeypatch):
-    sim = {"n_anchors": 5, "anchor_motion": {"model": "patrol"}}
-    if radio == "clean":
-        sim["ranging"] = {"nlos_probability": 0.0, "dropout_probability": 0.0}
+    sim = {"n_anchors": 5, "anchor_motion": {"model": "patrol"}, "ranging": radio}
     nees = _later_nees(sim, monkeypatch)
     rank = 5 * 2 - 3
     assert len(nees) >= 60
-    assert 0.4 < nees.mean() / rank < 1.6, nees.mean() / rank
+    assert 0.5 < nees.mean() / rank < 1.35, nees.mean() / rank
+    assert 0.4 < np.median(nees) / rank < 1.2

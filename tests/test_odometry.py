@@ -179,3 +179,7 @@ def test_drift_between_two_snapshots_is_the_prediction_restarted_at_the_first(rn
     assert odo.drift_var_between(later, later, dim=2) == pytest.approx(np.zeros(6), abs=1e-15)
     odo.restart_drift(since=earlier)
     np.testing.assert_allclose(between, odo.expected_drift_var_m2(2), rtol=1e-12)
+    # snapshots on either side of a restart are not comparable: an error, not a wrong variance
+    drive(3)
+    with pytest.raises(ValueError, match="restart"):
+        odo.drift_var_between(earlier, odo.snapshot())

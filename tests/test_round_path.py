@@ -76,13 +76,14 @@ def test_hardware_rounds_without_exchange_times_are_not_carried():
     assert path.carry_var_m2(None, OdometryModel(OdometryConfig())) is None
 
 
-@pytest.mark.parametrize("model", ["distance", "uniform"])
-def test_carry_variance_predicts_the_carried_ranges_error(rng, model):
+@pytest.mark.parametrize(("model", "dim"), [("distance", 2), ("uniform", 2), ("distance", 3)])
+def test_carry_variance_predicts_the_carried_ranges_error(rng, model, dim):
     # Carrying a pair's range to the midpoint swaps the true change of its distance for the
     # estimated one, so the odometry's drift between the pair's time and the midpoint enters the
     # range. Without its variance a later calibration in a moving team was ~2.5x overconfident
     # (bench_consistency). Noise-free ranges, many copies of a 5-anchor round with turning,
-    # drifting robots: the carried ranges' errors must have the predicted variance.
+    # drifting robots: the carried ranges' errors must have the predicted variance (in 3D the
+    # drift is planar and anchors at similar heights: spread over three axes it was 1.3x short).
     copies, n, dt = 600, 5, 0.2
     odo = OdometryModel(OdometryConfig(model=model, noise_std_m_per_sqrt_m=0.08, scale_error_std=0.05,
                                        yaw_noise_std_rad_per_sqrt_m=0.05, slip_rate_per_s=0.0,
@@ -90,19 +91,19 @@ def test_carry_variance_predicts_the_carried_ranges_error(rng, model):
     odo.reset(copies * n, rng)
     timing = RoundTiming.fit(CalibrationConfig())
     rnd = CalibrationRound(n, timing, 5, 0.0)
-    truth = rng.uniform(0, 20, (copies, n, 2))
+    truth = np.concatenate([rng.uniform(0, 20, (copies, n, 2)), rng.uniform(0, 0.3, (copies, n, dim - 2))], -1)
     est = truth.copy()
     heading = rng.uniform(-np.pi, np.pi, (copies, n))
     for _ in range(30):  # a heading error to carry into the round
-        odo.estimated_displacement(np.zeros((copies * n, 2)), np.zeros(copies * n), dt, rng)
+        odo.estimated_displacement(np.zeros((copies * n, dim)), np.zeros(copies * n), dt, rng)
     path = RoundPath(0.0, est, odo.snapshot(), truth)
     ranges = np.full((copies, len(rnd.times_s)), np.nan)
     s = 0
     while s * dt < rnd.end_time_s:
         turn = 0.5 * rng.standard_normal((copies, n))
         heading = heading + turn
-        delta = 1.0 * dt * np.stack([np.cos(heading), np.sin(heading)], axis=-1)
-        odo_delta = odo.estimated_displacement(delta.reshape(-1, 2), np.abs(turn).ravel(), dt, rng)
+        delta = 1.0 * dt * np.stack([np.cos(heading), np.sin(heading)] + [0 * heading] * (dim - 2), axis=-1)
+        odo_delta = odo.estimated_displacement(delta.reshape(-1, dim), np.abs(turn).ravel(), dt, rng)
         t0, t1 = s * dt, (s + 1) * dt
         take = (rnd.times_s > t0) & (rnd.times_s <= t1)
         alpha = ((rnd.times_s[take] - t0) / dt)[:, None]
@@ -110,7 +111,7 @@ def test_carry_variance_predicts_the_carried_ranges_error(rng, model):
         da, db = delta[:, rnd.initiator[take]], delta[:, rnd.responder[take]]
         ranges[:, take] = np.linalg.norm(a + alpha * da - b - alpha * db, axis=-1)
         truth = truth + delta
-        est = est + odo_delta.reshape(copies, n, 2)
+        est = est + odo_delta.reshape(copies, n, dim)
         s += 1
         path.record(s * dt, est, odo.snapshot(), truth)
     times = pair_mean_times_s(n, rnd.times_s, rnd.initiator, rnd.responder)

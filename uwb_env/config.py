@@ -240,8 +240,9 @@ class RangingConfig(ConfigBase):
     in the package (``uwb_env/data/dwm1001_los_ranges.csv``); set ``noise_std_m`` to override
     the fitted std. NLOS adds an exponential positive bias with probability
     ``nlos_probability``; a range is lost with ``dropout_probability`` or beyond
-    ``max_range_m``. ``correct_bias`` makes the estimator side undo the known slope/offset (a
-    bias does not average out).
+    ``max_range_m``. ``correct_bias`` makes the estimator side undo the known slope/offset and
+    the NLOS excess's mean, ``nlos_probability * nlos_bias_mean_m`` (a bias does not average
+    out); without it ranges are used as they arrive.
     """
 
     data_file: str = "dwm1001_los_ranges.csv"

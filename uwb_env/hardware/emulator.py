@@ -100,7 +100,7 @@ class Scene:
         with self.lock:
             model = self.world.range_model
             raw = model.measure(d, self.rng)
-            return np.maximum(model.correct(raw), 0.0) if unbiased else raw
+            return np.maximum(model.undo_linear_bias(raw), 0.0) if unbiased else raw
 
 
 def anchor_id4(index: int) -> str:

@@ -48,6 +48,7 @@ class OdometryModel:
         self._sum_b = np.zeros(n, dtype=complex)
         self._sum_c = np.zeros(n)
         self._ones = np.ones(n)
+        self._restarts = np.zeros(n, dtype=np.int64)  # a snapshot's drift is only comparable within one
 
     _ACCUMULATORS = ("heading_var_rad2", "_dist", "_steps", "_net", "_sum_a", "_sum_b", "_sum_c")
 
@@ -110,7 +111,15 @@ class OdometryModel:
 
     def snapshot(self, robots=slice(None)) -> dict:
         """The drift accumulators of ``robots`` now (for :meth:`restart_drift`'s ``since``)."""
-        return {name: getattr(self, name)[robots].copy() for name in self._ACCUMULATORS}
+        out = {name: getattr(self, name)[robots].copy() for name in self._ACCUMULATORS}
+        out["restarts"] = self._restarts[robots].copy()
+        return out
+
+    @property
+    def planar(self) -> bool:
+        """Whether the drift is in the horizontal plane only (``distance``: the vertical part is
+        integrated without error) rather than on every axis (``uniform``)."""
+        return not self._uniform
 
     def restart_drift(self, robots=slice(None), since: dict | None = None) -> None:
         """The estimates of ``robots`` (an index or mask) were just reset by a calibration.
@@ -122,6 +131,7 @@ class OdometryModel:
         B -> (B - B_s) - (A - A_s) P_s, C -> (C - C_s) - 2 Re(conj(P_s) (B - B_s)) + (A - A_s) |P_s|^2,
         the heading variance then carried). Without it the drift restarts from zero.
         """
+        self._restarts[robots] += 1
         if since is None:
             self._h0[robots] = self.heading_var_rad2[robots]
             for name in self._ACCUMULATORS[1:]:  # all but the heading variance, which carries on
@@ -171,6 +181,8 @@ class OdometryModel:
         accrued between them: :meth:`expected_drift_var_m2` as if the drift had restarted at
         ``earlier`` (the same re-centring as :meth:`restart_drift`), evaluated at ``later``.
         Both snapshots must lie after the robots' last restart (e.g. within one round)."""
+        if np.any(earlier["restarts"] != later["restarts"]):
+            raise ValueError("drift_var_between: a restart_drift lies between the two snapshots")
         cfg = self.config
         if self._uniform:
             return (later["_steps"] - earlier["_steps"]) * dim * cfg.uniform_error_m**2 / 3.0

@@ -84,6 +84,7 @@ class RangeModel:
         self._nlos_mean = self.config.nlos_bias_mean_m
         self._q_drop = upper_tail_threshold(self.config.dropout_probability)
         self._max_range = self.config.max_range_m
+        self._corrected_offset_m = self.offset_m + self.config.nlos_probability * self.config.nlos_bias_mean_m
 
     @property
     def corrected_noise_std_m(self) -> float:
@@ -93,8 +94,9 @@ class RangeModel:
     @property
     def corrected_range_std_m(self) -> float:
         """Std of a single corrected range with the NLOS excess included: the Gaussian noise
-        and, with probability p, an Exp(mu) excess (variance p mu^2 (2 - p)), over the slope.
-        The mixture's tail is heavier than a Gaussian's: this is its second moment only."""
+        and, with probability p, an Exp(mu) excess (its variance about the mean p mu that
+        :meth:`correct` removes: p mu^2 (2 - p)), over the slope. The mixture's tail is
+        heavier than a Gaussian's of this std."""
         p, mu = self.config.nlos_probability, self.config.nlos_bias_mean_m
         var = self.noise_std_m**2 + p * mu * mu * (2.0 - p)
         return float(np.sqrt(var) / (self.slope if self.config.correct_bias else 1.0))
@@ -113,9 +115,16 @@ class RangeModel:
         return out.reshape(true.shape)
 
     def correct(self, measured_m: np.ndarray) -> np.ndarray:
-        """Undo the known slope/offset: an estimate of the true distance."""
+        """Undo the known slope/offset and the NLOS excess's mean (p mu: every range carries it
+        in expectation, so least squares over many pairs would otherwise stretch the whole
+        shape): an unbiased estimate of the true distance."""
         if not self.config.correct_bias:
             return np.asarray(measured_m, dtype=float)
+        return (np.asarray(measured_m, dtype=float) - self._corrected_offset_m) / self.slope
+
+    def undo_linear_bias(self, measured_m: np.ndarray) -> np.ndarray:
+        """(measured - offset) / slope: what firmware with calibrated antenna delays reports
+        (the NLOS excess stays in: it is the radio path's, not the device's)."""
         return (np.asarray(measured_m, dtype=float) - self.offset_m) / self.slope
 
     def correct_matrix(self, matrix):

@@ -101,11 +101,12 @@ class RoundPath:
     def carry_var_m2(self, pair_times_s: np.ndarray | None, odometry) -> np.ndarray | None:
         """(..., N, N) variance :meth:`carry` adds to each ordered pair's mean: the change of the
         estimated distance stands in for the true one, so the odometry's drift between the
-        pair's time and the midpoint enters the carried range, along the pair (isotropic: the
-        drift's variance over dim per axis, as the predicted covariance takes it; the two ends
-        independent). Its variance is the odometry model's (``drift_var_between``) from the
-        step boundary nearest the midpoint to each boundary, linear in time between boundaries.
-        None where :meth:`carry` leaves the means unchanged or no drift was recorded."""
+        pair's time and the midpoint enters the carried range, along the pair. Per end: the
+        drift's variance over its axes (dim; 2 for planar odometry, projected on the pair's
+        horizontal part in 3D), the two ends independent. The drift variance is the odometry
+        model's (``drift_var_between``) from the step boundary nearest the midpoint to each
+        boundary, linear in time between boundaries. None where :meth:`carry` leaves the means
+        unchanged or no drift was recorded."""
         if pair_times_s is None or self.times_s[-1] <= self.times_s[0] or self.drifts[0] is None:
             return None
         shape = self.estimates[0].shape  # (..., N, dim)
@@ -117,9 +118,17 @@ class RoundPath:
         i, j = np.nonzero(~np.eye(n, dtype=bool))
         at_pair = self._at(var, pair_times_s[i, j])  # (P, ..., N)
         p = np.arange(len(i))
-        pair_var = (at_pair[p, ..., i] + at_pair[p, ..., j]) / dim  # (P, ...)
+        pair_var = np.moveaxis(at_pair[p, ..., i] + at_pair[p, ..., j], 0, -1)  # (..., P)
+        if odometry.planar:
+            pair_var = pair_var / 2.0
+            if dim == 3:  # only the pair direction's horizontal part sees the drift
+                est = self.midpoint_estimates()
+                u = est[..., i, :] - est[..., j, :]
+                pair_var = pair_var * np.sum(u[..., :2] ** 2, axis=-1) / np.maximum(np.sum(u * u, axis=-1), 1e-24)
+        else:
+            pair_var = pair_var / dim
         out = np.zeros(shape[:-2] + (n, n))
-        out[..., i, j] = np.moveaxis(pair_var, 0, -1)
+        out[..., i, j] = pair_var
         return out
 
 
