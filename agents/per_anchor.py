@@ -12,9 +12,13 @@ from uwb_env.agents.baselines import _FROM_END, _positive
 NOTHING, RELOCATE_ME, TEAM_ROUND = 0, 1, 2
 
 
-MEASURES = ("total", "drift")
+MEASURES = ("total", "drift", "team")
 # the per-anchor heuristics' spec names -> the measure their rule compares
 FAMILIES = {"per_anchor_threshold": "total", "per_anchor_drift": "drift"}
+# the tuned families the learned residual can take as its base rule: the per-anchor ones and
+# the team uncertainty threshold (``threshold:T``, baselines.UncertaintyThresholdPolicy: every
+# anchor votes for a team round when any predicted std passes T)
+BASE_FAMILIES = {**FAMILIES, "threshold": "team"}
 
 
 def check_measure(measure: str) -> str:
@@ -24,13 +28,14 @@ def check_measure(measure: str) -> str:
 
 
 def learned_base(spec: str) -> str:
-    """A per-anchor heuristic's spec -> the learned residual's base on the same rule (the part
+    """A base family's tuned spec -> the learned residual's base on the same rule (the part
     after ``@`` in ``learned:<model>@...``): ``per_anchor_threshold:T`` -> ``T``,
-    ``per_anchor_drift:T`` -> ``drift:T``."""
+    ``per_anchor_drift:T`` -> ``drift:T``, ``threshold:T`` -> ``team:T``."""
     family, _, value = spec.partition(":")
-    if family not in FAMILIES:
-        raise ValueError(f"spec={spec!r}: not a per-anchor heuristic ({', '.join(FAMILIES)})")
-    return value if FAMILIES[family] == "total" else f"{FAMILIES[family]}:{value}"
+    if family not in BASE_FAMILIES:
+        raise ValueError(f"spec={spec!r}: not a rule the learned residual can take as its base "
+                         f"({', '.join(BASE_FAMILIES)})")
+    return value if BASE_FAMILIES[family] == "total" else f"{BASE_FAMILIES[family]}:{value}"
 
 
 def threshold_actions(predicted_std_m, calibration_std_m, threshold_m, team_fraction: float = 0.5,
@@ -51,10 +56,16 @@ def threshold_actions(predicted_std_m, calibration_std_m, threshold_m, team_frac
       barely fix, and the total rule re-located it back to back, each round holding every
       tag's fix (``three_d`` test seed 1000011: 119 steps of rounds, > 1 m of mean tag error).
       When a calibration is poor by chance (fast robots: rounds fit poorly), the total rule's
-      early repeat pays instead; which rule fits a deployment is tuned like the threshold.
+      early repeat pays instead; which rule fits a deployment is tuned like the threshold;
+    - ``"team"``: the team uncertainty threshold (``threshold:T``): when any anchor's predicted
+      std passes T, every anchor asks for a team round (no single re-locations).
     """
     check_measure(measure)
     thr = float(threshold_m) if np.ndim(threshold_m) == 0 else np.asarray(threshold_m, dtype=np.float64)[..., None]
+    if measure == "team":  # threshold:T: any anchor past T, and the whole team asks for a round
+        pred = np.asarray(predicted_std_m)
+        stale = np.broadcast_to((pred > thr).any(-1, keepdims=True), pred.shape)
+        return np.where(stale, TEAM_ROUND, NOTHING)
     if measure == "total":
         pred = np.asarray(predicted_std_m)
         stale = pred > thr

@@ -31,7 +31,9 @@ def shipped_model(name: str) -> Path:
 def _learned(param: str, dt_s: float):
     """``learned:<model>`` or, for the per-anchor residual scheduler, ``learned:<model>@<threshold_m>``
     (the base rule's threshold on the predicted std; default ``anchor_set.DEFAULT_BASE_THRESHOLD_M``)
-    or ``learned:<model>@drift:<threshold_m>`` (the base rule on the drift since calibration)."""
+    or ``learned:<model>@drift:<threshold_m>`` (the base rule on the drift since calibration) or
+    ``learned:<model>@team:<threshold_m>`` (the team threshold rule: a team round when any
+    anchor's predicted std passes it)."""
     from uwb_env.agents.learned import LearnedPolicy
 
     path, threshold, measure = param, "", "total"
@@ -39,7 +41,7 @@ def _learned(param: str, dt_s: float):
     # '@' followed by more path (a directory named with '@') is part of the model's path
     if at and "/" not in tail and not tail.endswith(".zip"):
         path, threshold = head, tail
-        if threshold.startswith(("drift:", "total:")):  # the base rule's measure (default: total)
+        if threshold.startswith(("drift:", "total:", "team:")):  # the base rule's measure (default: total)
             measure, _, threshold = threshold.partition(":")
         if not threshold:
             raise ValueError(f"learned:{param}: '@' needs a base threshold in metres, e.g. learned:anchor_set@0.3")
@@ -104,7 +106,7 @@ POLICIES: dict[str, tuple[Callable, str]] = {
     "clairvoyant": (lambda p, dt: _lookahead(p, True), "H[@K]: the lookahead on the real future's noise; "
                     "GROUND TRUTH, optimistic bound"),
     "learned": (lambda p, dt: _learned(p, dt), "path of a saved SB3 model (.zip), or a shipped model's name; "
-                "@T / @drift:T: the per-anchor scheduler's base rule and threshold (m)"),
+                "@T / @drift:T / @team:T: the per-anchor scheduler's base rule and threshold (m)"),
     "rllib": (lambda p, dt: _rllib(p, dt), "path of an RLlib checkpoint folder"),
 }
 

@@ -53,12 +53,13 @@ INTEGER = {"fixed"}
 
 
 def learned_base(tuned: dict) -> str:
-    """The learned residual's base: the per-anchor family that scored higher on the validation
-    seeds, at its tuned threshold -> the ``@`` part of its spec (``T`` or ``drift:T``)."""
+    """The learned residual's base: of the families it can take as its base rule (the per-anchor
+    ones and the team threshold) the one that scored highest on the validation seeds, at its
+    tuned threshold -> the ``@`` part of its spec (``T``, ``drift:T`` or ``team:T``)."""
     from uwb_env.agents import per_anchor
 
     returns = tuned["validation_returns"]
-    return per_anchor.learned_base(max((tuned["best_of_family"][f] for f in per_anchor.FAMILIES
+    return per_anchor.learned_base(max((tuned["best_of_family"][f] for f in per_anchor.BASE_FAMILIES
                                         if f in tuned["best_of_family"]), key=returns.get))
 
 

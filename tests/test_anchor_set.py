@@ -157,9 +157,10 @@ def test_numpy_actor_takes_the_same_actions_as_sb3():
     assert len(np.unique(sb3)) == 3  # the inputs exercise every action
 
 
-@pytest.mark.parametrize("threshold,measure", [(0.1, "total"), (0.3, "total"), (0.1, "drift")])
+@pytest.mark.parametrize("threshold,measure", [(0.1, "total"), (0.3, "total"), (0.1, "drift"), (0.2, "team")])
 def test_an_untrained_residual_policy_is_the_per_anchor_threshold_rule(tmp_path, threshold, measure):
-    """The residual starts as its base rule, exactly (argmax), in the numpy actor and in SB3."""
+    """The residual starts as its base rule, exactly (argmax), in the numpy actor and in SB3. On
+    the team measure it is ``threshold:T`` as the harness runs it (the centralized action)."""
     pytest.importorskip("stable_baselines3")
     from stable_baselines3 import PPO
     from uwb_env.agents.anchor_set import AnchorSetPolicy
@@ -186,7 +187,13 @@ def test_an_untrained_residual_policy_is_the_per_anchor_threshold_rule(tmp_path,
     assert learned.prior_logit == 3.0 and learned._layers is not None
     env = uwb_env.parallel_env(max_cycles=120, action_mode="per_anchor", sim={"n_anchors": 5})
     a = rollout(env, learned, seed=4)
-    b = rollout(env, PerAnchorThresholdPolicy(threshold, measure=measure), seed=4)
+    if measure == "team":
+        from uwb_env.agents.baselines import UncertaintyThresholdPolicy
+
+        b = rollout(uwb_env.parallel_env(max_cycles=120, sim={"n_anchors": 5}), UncertaintyThresholdPolicy(threshold),
+                    seed=4)
+    else:
+        b = rollout(env, PerAnchorThresholdPolicy(threshold, measure=measure), seed=4)
     np.testing.assert_array_equal(a.round_started, b.round_started)
     np.testing.assert_array_equal(a.tag_error_m, b.tag_error_m)
     assert a.round_started.any()  # the rule calibrates in these episodes
@@ -252,7 +259,18 @@ def test_the_learned_spec_names_the_base_rule():
     assert (total.base_threshold_m, total.base_measure) == (0.25, "total")
     assert (drift.base_threshold_m, drift.base_measure) == (0.4, "drift")
     assert make_policy("learned:anchor_set@total:0.25").base_measure == "total"
+    assert make_policy("learned:anchor_set@team:0.5").base_measure == "team"
     with pytest.raises(PolicySpecError, match="needs a base threshold"):
         make_policy("learned:anchor_set@drift:")
     with pytest.raises(PolicySpecError, match="must be a number"):
         make_policy("learned:anchor_set@max:0.3")
+
+
+def test_the_learned_base_is_the_best_family_it_can_express():
+    from uwb_env.agents.per_anchor import learned_base
+
+    assert learned_base("per_anchor_threshold:0.3") == "0.3"
+    assert learned_base("per_anchor_drift:0.25") == "drift:0.25"
+    assert learned_base("threshold:1") == "team:1"
+    with pytest.raises(ValueError, match="as its base"):
+        learned_base("fixed:60")  # no rule of the residual's features

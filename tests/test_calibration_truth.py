@@ -209,3 +209,32 @@ def test_3d_first_calibration_with_most_pairs_dropped_raises_only_typed_errors()
             LocalizationSystem(cfg).reset(np.random.default_rng(seed))
         except LocalizationError:
             pass
+
+
+def test_known_heights_calibrate_the_plane_and_keep_the_heights():
+    from uwb_env.localization.calibration import calibrate_anchors_known_heights
+
+    rng = np.random.default_rng(3)
+    x = np.column_stack([rng.uniform(0, 10, (5, 2)), rng.uniform(0.8, 1.2, 5)])
+    m = noisy_round(x, rng, 1e-6, 5)
+    r = calibrate_anchors_known_heights(m, x[:, 2], 0.01, range_std_m=0.05)
+    assert r.ambiguous and r.positions.shape == (5, 3)
+    np.testing.assert_array_equal(r.positions[:, 2], x[:, 2])
+    np.testing.assert_allclose(distances(r.positions), distances(x), atol=1e-4)  # the shape, up to a frame
+    np.testing.assert_allclose(r.anchor_covariance()[:, 2, 2], 1e-4)
+    with pytest.raises(InvalidRangeError, match="heights_m"):
+        calibrate_anchors_known_heights(m, x[:4, 2], 0.01)
+    with pytest.raises(SolverArgumentError, match="height_std_m"):
+        calibrate_anchors_known_heights(m, x[:, 2], -1.0)
+
+
+def test_a_flat_3d_team_still_gets_a_first_calibration():
+    # three_d test seed 1000028: four anchors within 1 m of height over 10 m; with unbiased
+    # ranges every pooled round fits a flat shape, so the ranges cannot fix the heights and
+    # reset() raised GeometryError. The plane comes from the ranges, the heights from the
+    # on-board estimates, and the verdict says the ranges alone did not decide.
+    env = parallel_env(action_mode="per_anchor", max_cycles=5, sim={"dim": 3})
+    env.reset(seed=1_000_028)
+    system = env.system
+    assert system.calibration_ambiguous
+    assert system.world.anchor_errors_m().max() < 0.5

@@ -50,15 +50,16 @@ SHIPPED_LEARNED = "anchor_set"
 
 
 def shipped_learned_spec(tuned: Path = DEFAULT_TUNED) -> str:
-    """``learned:anchor_set@T`` (or ``@drift:T``): the shipped residual scheduler on the per-anchor
-    rule tuned for the default scenario: of ``tuned``'s per-anchor families (the predicted std,
-    the drift since calibration) the one with the higher validation return, at its threshold
-    (the model's default base when the file has none)."""
-    from uwb_env.agents.per_anchor import FAMILIES, learned_base
+    """``learned:anchor_set@T`` (or ``@drift:T``, ``@team:T``): the shipped residual scheduler on
+    the rule tuned for the default scenario: of ``tuned``'s families it can take as its base (the
+    per-anchor rules on the predicted std and on the drift since calibration, the team
+    threshold) the one with the highest validation return, at its threshold (the model's
+    default base when the file has none)."""
+    from uwb_env.agents.per_anchor import BASE_FAMILIES, learned_base
 
     try:
         record = json.loads(Path(tuned).read_text())
-        names = [f for f in FAMILIES if f in record["tuned"]]
+        names = [f for f in BASE_FAMILIES if f in record["tuned"]]
         family = max(names, key=lambda f: record.get("families", {}).get(f, {}).get("best_return", -np.inf))
         return f"learned:{SHIPPED_LEARNED}@{learned_base(record['tuned'][family])}"
     except (OSError, KeyError, ValueError):

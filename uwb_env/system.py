@@ -20,9 +20,10 @@ import numpy as np
 
 from uwb_env.config import EnvConfig
 from uwb_env.features import anchor_features
-from uwb_env.localization import LocalizationError, calibrate_anchors, locate_tags, rigid_align
+from uwb_env.localization import GeometryError, LocalizationError, calibrate_anchors, locate_tags, rigid_align
 from uwb_env.localization._tracking_kernel import residual_statistics
 from uwb_env.localization.batched_calibration import later_calibrations, symmetric_arrays
+from uwb_env.localization.calibration import calibrate_anchors_known_heights
 from uwb_env.localization.multilateration import (
     TAG_NO_FIX,
     TAG_OK,
@@ -204,6 +205,18 @@ class LocalizationSystem:
                 best = result
         if best is not None and best.status != "not_converged":
             return best  # the verdict is reported (calibration_fit / calibration_ambiguous in infos)
+        if pooled is not None and isinstance(last, GeometryError) and self.dim == 3:
+            # The pooled ranges fit a flat shape within their noise, round after round (four
+            # anchors at similar heights: the data cannot fix the heights). The robots know
+            # their heights (the odometry integrates the vertical without error): the plane
+            # from the ranges, the heights from the on-board estimates, reported ambiguous.
+            est = self._round_path.midpoint_estimates()
+            try:
+                return calibrate_anchors_known_heights(
+                    pooled, est[:, 2], np.sqrt(np.maximum(self.predicted_anchor_var_m2(), self.range_std_m**2)),
+                    loss=cfg.solver.loss, f_scale=cfg.solver.f_scale_sigmas, range_std_m=self.pair_range_std_m)
+            except LocalizationError as err:
+                last = err
         raise (type(last) if last else LocalizationError)(
             f"first calibration failed after {self.FIRST_CALIBRATION_MAX_ROUNDS} pooled rounds: "
             f"{last if last else best.message}")

@@ -1123,3 +1123,31 @@ def classical_mds(full: np.ndarray, dim: int) -> np.ndarray:
     if vals[order[-1]] <= 1e-9 * max(vals[order[0]], 1e-300):
         raise GeometryError(f"anchors span fewer than {dim} dimensions (collinear or coplanar)")
     return vecs[:, order] * np.sqrt(vals[order])
+
+
+def calibrate_anchors_known_heights(ranges: RangeMatrix, heights_m: np.ndarray, height_std_m: np.ndarray | float,
+                                    **kwargs) -> CalibrationResult:
+    """A 3D calibration whose heights come from elsewhere (the on-board estimates, an
+    altimeter): each range becomes its horizontal part, sqrt(r^2 - dz^2) (0 where the range is
+    shorter than the height difference), the plane is calibrated in 2D by
+    :func:`calibrate_anchors` (``kwargs``: its arguments, ``dim`` excluded) and the heights are
+    attached with variance ``height_std_m^2``. For anchors at similar heights, whose ranges fit
+    a flat shape within their noise: the ranges cannot fix the heights then. The result is
+    marked ``ambiguous`` (the ranges alone did not decide the shape)."""
+    heights = np.asarray(heights_m, dtype=float)
+    n = ranges.n_anchors
+    if heights.shape != (n,) or not np.isfinite(heights).all():
+        raise InvalidRangeError(f"heights_m: expected ({n},) finite heights, got shape {heights.shape}")
+    std = np.broadcast_to(np.asarray(height_std_m, dtype=float), (n,))
+    if not np.all(np.isfinite(std) & (std >= 0)):
+        raise SolverArgumentError(f"height_std_m={height_std_m!r}: must be finite and >= 0")
+    dz = heights[:, None] - heights[None, :]
+    with np.errstate(invalid="ignore"):
+        horizontal = np.sqrt(np.maximum(ranges.mean_m**2 - dz**2, 0.0))
+    plane = calibrate_anchors(replace(ranges, mean_m=np.where(np.isfinite(ranges.mean_m), horizontal, np.nan)),
+                              dim=2, **kwargs)
+    cov = np.zeros((n, 3, n, 3))
+    cov[:, :2, :, :2] = plane.covariance.reshape(n, 2, n, 2)
+    cov[np.arange(n), 2, np.arange(n), 2] = std**2
+    return replace(plane, positions=np.column_stack([plane.positions, heights]), covariance=cov.reshape(3 * n, 3 * n),
+                   message=f"heights given, plane from the ranges: {plane.message}", ambiguous=True)
