@@ -137,18 +137,8 @@ class OdometryModel:
             for name in self._ACCUMULATORS[1:]:  # all but the heading variance, which carries on
                 getattr(self, name)[robots] = 0.0
             return
-        p_s = since["_net"]
-        d_a = self._sum_a[robots] - since["_sum_a"]
-        d_b = self._sum_b[robots] - since["_sum_b"]
-        d_c = self._sum_c[robots] - since["_sum_c"]
-        cross = p_s.real * d_b.real + p_s.imag * d_b.imag
-        self._h0[robots] = since["heading_var_rad2"]
-        self._dist[robots] = self._dist[robots] - since["_dist"]
-        self._steps[robots] = self._steps[robots] - since["_steps"]
-        self._net[robots] = self._net[robots] - p_s
-        self._sum_a[robots] = d_a
-        self._sum_b[robots] = d_b - d_a * p_s
-        self._sum_c[robots] = d_c - 2.0 * cross + d_a * (p_s.real**2 + p_s.imag**2)
+        for name, value in _recentred(since, self.snapshot(robots)).items():
+            getattr(self, name)[robots] = value
 
     def expected_drift_var_m2(self, dim: int = 2, robots=slice(None)) -> np.ndarray:
         """(n,) (or of ``robots``, an index) expected variance (summed over axes) of each robot's drift since its last
@@ -168,12 +158,18 @@ class OdometryModel:
             return drift_variance(self._net, self._sum_b, self._dist, self._h0, self._sum_a, self._sum_c,
                                   2 * cfg.noise_std_m_per_sqrt_m**2 * self.expected_slip_gain2,
                                   cfg.scale_error_std**2)
-        p, b = self._net[robots], self._sum_b[robots]
+        return self._variance({name: getattr(self, name)[robots] for name in ("_h0",) + self._ACCUMULATORS[1:]})
+
+    def _variance(self, acc: dict) -> np.ndarray:
+        """The ``distance`` model's drift variance from accumulators since a restart (``_h0``:
+        the heading variance at the restart); :meth:`expected_drift_var_m2`'s formula."""
+        cfg = self.config
+        p, b = acc["_net"], acc["_sum_b"]
         p2 = p.real * p.real + p.imag * p.imag
         cross = p.real * b.real + p.imag * b.imag
-        white = 2 * cfg.noise_std_m_per_sqrt_m**2 * self.expected_slip_gain2 * self._dist[robots]
-        carried = cfg.scale_error_std**2 + self._h0[robots] + self._sum_a[robots]
-        heading = carried * p2 - 2 * cross + self._sum_c[robots]
+        white = 2 * cfg.noise_std_m_per_sqrt_m**2 * self.expected_slip_gain2 * acc["_dist"]
+        carried = cfg.scale_error_std**2 + acc["_h0"] + acc["_sum_a"]
+        heading = carried * p2 - 2 * cross + acc["_sum_c"]
         return white + np.maximum(heading, 0.0)
 
     def drift_var_between(self, earlier: dict, later: dict, dim: int = 2) -> np.ndarray:
@@ -183,20 +179,9 @@ class OdometryModel:
         Both snapshots must lie after the robots' last restart (e.g. within one round)."""
         if np.any(earlier["restarts"] != later["restarts"]):
             raise ValueError("drift_var_between: a restart_drift lies between the two snapshots")
-        cfg = self.config
         if self._uniform:
-            return (later["_steps"] - earlier["_steps"]) * dim * cfg.uniform_error_m**2 / 3.0
-        p_s = earlier["_net"]
-        d_a = later["_sum_a"] - earlier["_sum_a"]
-        d_b = later["_sum_b"] - earlier["_sum_b"]
-        p = later["_net"] - p_s
-        b = d_b - d_a * p_s
-        c = (later["_sum_c"] - earlier["_sum_c"] - 2.0 * (p_s.real * d_b.real + p_s.imag * d_b.imag)
-             + d_a * (p_s.real**2 + p_s.imag**2))
-        white = 2 * cfg.noise_std_m_per_sqrt_m**2 * self.expected_slip_gain2 * (later["_dist"] - earlier["_dist"])
-        carried = cfg.scale_error_std**2 + earlier["heading_var_rad2"] + d_a
-        heading = carried * (p.real**2 + p.imag**2) - 2 * (p.real * b.real + p.imag * b.imag) + c
-        return white + np.maximum(heading, 0.0)
+            return (later["_steps"] - earlier["_steps"]) * dim * self.config.uniform_error_m**2 / 3.0
+        return self._variance(_recentred(earlier, later))
 
     @property
     def expected_slip_gain2(self) -> float:
@@ -208,3 +193,17 @@ class OdometryModel:
         rt = cfg.slip_rate_per_s * cfg.slip_duration_s
         return 1.0 + rt / (1.0 + rt) * (cfg.slip_noise_multiplier**2 - 1.0)
 
+
+def _recentred(since: dict, now: dict) -> dict:
+    """The drift accumulators of :meth:`OdometryModel.snapshot` ``now`` as if the drift had
+    restarted at the snapshot ``since`` (the same robots): P -> P - P_s, B -> (B - B_s) -
+    (A - A_s) P_s, C -> (C - C_s) - 2 Re(conj(P_s) (B - B_s)) + (A - A_s) |P_s|^2, the heading
+    variance at ``since`` as ``_h0``."""
+    p_s = since["_net"]
+    d_a = now["_sum_a"] - since["_sum_a"]
+    d_b = now["_sum_b"] - since["_sum_b"]
+    d_c = now["_sum_c"] - since["_sum_c"]
+    cross = p_s.real * d_b.real + p_s.imag * d_b.imag
+    return {"_h0": since["heading_var_rad2"], "_dist": now["_dist"] - since["_dist"],
+            "_steps": now["_steps"] - since["_steps"], "_net": now["_net"] - p_s, "_sum_a": d_a,
+            "_sum_b": d_b - d_a * p_s, "_sum_c": d_c - 2.0 * cross + d_a * (p_s.real**2 + p_s.imag**2)}
