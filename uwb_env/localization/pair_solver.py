@@ -11,7 +11,10 @@ A calibration has a handful to a few thousand residuals, so a general solver (sc
   two anchors: four dim x dim blocks and two gradient entries), so an iteration costs O(pairs),
   not the O(pairs x coordinates^2) of a dense product (~N^4 at N = 64). An extra last
   coordinate absorbs the gauge-fixed ones (no column selection; its step is zero);
-- starts as Gauss-Newton (no damping) and only damps after a step that raised the cost;
+- steps with the cost's Hessian (J^T W J plus the residuals' curvature) where it is positive
+  definite, else with J^T W J (Gauss-Newton), and only damps after a step that raised the cost.
+  Gauss-Newton alone converges linearly along weakly determined directions (3D teams at
+  similar heights: ~260 iterations for a 64-anchor first calibration, 5 with the Hessian);
 - stops when the step is below ``xtol_sigma`` of the smallest range std: what is left is
   orders of magnitude under the noise. That last step is taken without a new evaluation; the
   residuals are updated to first order (their error is about the step squared over a range,
@@ -179,7 +182,7 @@ def solve_pair_ranges(
         xtol_sigma: stop when the step's norm is below this fraction of the smallest sigma_p.
             The step is still taken, so what is left is about the next step. Default 1e-3 for
             the linear loss, where Gauss-Newton shrinks steps by about the residual-to-range
-            ratio each iteration (quadratically when the ranges are consistent); 1e-6 for
+            ratio each iteration (quadratically when the ranges are consistent); 1e-4 for
             robust losses, whose reweighting converges only linearly.
         ftol: or when the relative cost decrease falls below this.
     """
