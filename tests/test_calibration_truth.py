@@ -122,6 +122,27 @@ def test_3d_reset_works_where_the_flat_trilateration_start_broke_it(seed):
     assert all(np.isfinite(o).all() for o in obs.values())
 
 
+@pytest.mark.parametrize("seed", [17, 70, 74])
+def test_a_3d_anchor_mirrored_across_the_others_plane_is_never_a_confident_answer(seed):
+    """16 anchors at heights of std 0.5 m over 20 m: one anchor's mirror image across the plane
+    of the others fits within the noise (seeds 17, 70: a tie) or better (74: the first answer
+    was not the least-squares one). They came back ok, unambiguous and 2-7x outside the
+    covariance (NEES 177-296 on 42 dof); now a probe from each anchor's mirror finds the other
+    shape and the answer is flagged."""
+    from scipy.special import chdtri
+
+    from uwb_env.localization.bounds import gauge_nees
+
+    rng = np.random.default_rng(seed)
+    x = np.c_[rng.uniform(0, 20, (16, 2)), rng.normal(0, 0.5, 16)]
+    d = distances(x) + 0.1 * rng.standard_normal((16, 16))
+    d = (d + d.T) / 2
+    np.fill_diagonal(d, np.nan)
+    result = calibrate_anchors(d, dim=3, range_std_m=0.1 / np.sqrt(2))
+    nees, _ = gauge_nees(result.positions, result.covariance, result.gauge_refs, x)
+    assert result.status != "ok" or result.ambiguous or nees <= chdtri(3 * 16 - 6, 1e-3)
+
+
 def test_pooled_rounds_add_counts_and_weight_means():
     rng = np.random.default_rng(0)
     x = rng.uniform(0, 10, (4, 2))
