@@ -113,8 +113,13 @@ class RoundPath:
         n, dim = shape[-2], shape[-1]
         k_mid = int(np.argmin(np.abs(np.asarray(self.times_s) - self.midpoint_time_s)))
         mid = self.drifts[k_mid]
-        var = [odometry.drift_var_between(*((d, mid) if k <= k_mid else (mid, d)), dim=dim).reshape(shape[:-1])
-               for k, d in enumerate(self.drifts)]
+        # every boundary at once (elementwise: the same numbers as one call per boundary):
+        # from the boundary to the midpoint before it, from the midpoint to it after
+        stack = {name: np.stack([d[name] for d in self.drifts]) for name in mid}
+        before = (np.arange(len(self.drifts)) <= k_mid).reshape((-1,) + (1,) * np.ndim(mid["_net"]))
+        earlier = {name: np.where(before, v, mid[name]) for name, v in stack.items()}
+        later = {name: np.where(before, mid[name], v) for name, v in stack.items()}
+        var = list(odometry.drift_var_between(earlier, later, dim=dim).reshape((len(self.drifts),) + shape[:-1]))
         i, j = np.nonzero(~np.eye(n, dtype=bool))
         at_pair = self._at(var, pair_times_s[i, j])  # (P, ..., N)
         p = np.arange(len(i))
