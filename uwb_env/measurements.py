@@ -127,13 +127,15 @@ class RangeMatrix:
             std_flat = self.std_m.ravel()
             info_a = ca / np.maximum(std_flat.take(upper), min_std_m) ** 2
             info_b = cb / np.maximum(std_flat.take(lower), min_std_m) ** 2
-        total = info_a + info_b
-        if not total.min() > 0:  # NaN stds
+        if not (info_a + info_b).min() > 0:  # NaN stds
             return None
-        var = 1.0 / total
-        if self.carry_var_m2 is not None:
-            var = var + _carried(self.carry_var_m2, upper, lower, info_a, info_b, total)
-        return pairs, (info_a * ma + info_b * mb) / total, var
+        carry = self.carry_var_m2
+        if carry is None:
+            mean, var = combine_directions(ma, mb, info_a, info_b)
+        else:
+            flat = carry.ravel()
+            mean, var = combine_directions(ma, mb, info_a, info_b, flat.take(upper), flat.take(lower))
+        return pairs, mean, var
 
     def _symmetric_general(self, min_std_m: float, std_m: float | None):
         pairs, upper, lower = _pair_index(self.n_anchors)
@@ -150,15 +152,15 @@ class RangeMatrix:
                 stds = np.maximum(np.stack([std_flat.take(upper), std_flat.take(lower)]), min_std_m)
                 info = np.where(valid, counts / np.maximum(stds, 1e-12) ** 2, 0.0)
             total = info.sum(axis=0)
-            mean = (info * means).sum(axis=0) / total
-            # Pairs with valid data but zero std everywhere (min_std 0): plain average.
+            carry = self.carry_var_m2
+            carry_ab = () if carry is None else (carry.ravel().take(upper), carry.ravel().take(lower))
+            mean, var = combine_directions(means[0], means[1], info[0], info[1], *carry_ab)
+            # Pairs with valid data but zero std everywhere (min_std 0): plain average, variance 0.
             flat = (total == np.inf) | np.isnan(mean)
             if flat.any():
                 k = valid.sum(axis=0)
                 mean = np.where(flat, means.sum(axis=0) / np.maximum(k, 1), mean)
-            var = np.where(total > 0, 1.0 / total, np.inf)
-            if self.carry_var_m2 is not None:
-                var = var + np.nan_to_num(_carried(self.carry_var_m2, upper, lower, info[0], info[1], total))
+            var = np.where(total > 0, np.nan_to_num(var, nan=0.0, posinf=np.inf), np.inf)
         keep = valid.any(axis=0)
         if keep.all():
             return pairs, mean, var
@@ -181,11 +183,19 @@ class RangeMatrix:
         return RangeMatrix(mean.reshape(n, n), std.reshape(n, n), count.reshape(n, n).astype(int))
 
 
-def _carried(carry_var_m2, upper, lower, info_a, info_b, total):
-    """A pair's carry variance: the two directions' weighted as their means are (their carry
-    errors taken as fully dependent, which this bounds from above)."""
-    flat = carry_var_m2.ravel()
-    return (info_a * np.nan_to_num(flat.take(upper)) + info_b * np.nan_to_num(flat.take(lower))) / total
+def combine_directions(mean_a, mean_b, info_a, info_b, carry_a=None, carry_b=None):
+    """(mean, variance) of unordered pairs from their two directions (arrays of any one shape):
+    the inverse-variance weighted mean (``info``: count / sigma^2 of each direction's mean) and
+    its variance 1 / (info_a + info_b), plus, given the directions' carry variances, those
+    weighted as the means are (their carry errors taken as fully dependent, which this bounds
+    from above; NaN carry counts as 0). The one place both directions are combined:
+    :meth:`RangeMatrix.symmetric` and the batched envs' ``symmetric_arrays`` call it."""
+    total = info_a + info_b
+    mean = (info_a * mean_a + info_b * mean_b) / total
+    var = 1.0 / total
+    if carry_a is not None:
+        var = var + (info_a * np.nan_to_num(carry_a) + info_b * np.nan_to_num(carry_b)) / total
+    return mean, var
 
 
 def pool_rounds(a: RangeMatrix, b: RangeMatrix) -> RangeMatrix:

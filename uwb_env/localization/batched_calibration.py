@@ -376,7 +376,7 @@ def symmetric_arrays(mean_m: np.ndarray, count: np.ndarray, range_std_m: float,
     once (and the matrices' (K, N, N) ``carry_var_m2``, or None): (complete (K,) bool, pairs
     (P, 2), dist (K, P), var (K, P)); a team is complete when every ordered pair was measured
     with a finite mean >= the solver's negative tolerance."""
-    from uwb_env.measurements import NEGATIVE_RANGE_TOLERANCE_M
+    from uwb_env.measurements import NEGATIVE_RANGE_TOLERANCE_M, combine_directions
 
     n = mean_m.shape[1]
     iu, ju = _upper_pairs(n)
@@ -385,12 +385,12 @@ def symmetric_arrays(mean_m: np.ndarray, count: np.ndarray, range_std_m: float,
     with np.errstate(invalid="ignore"):
         complete = ((np.minimum(ca, cb) > 0).all(1) & (np.minimum(ma, mb) >= -NEGATIVE_RANGE_TOLERANCE_M).all(1)
                     & (np.maximum(ma, mb) < np.inf).all(1))
-    total = (ca + cb) / range_std_m**2
-    with np.errstate(invalid="ignore", divide="ignore"):
-        dist = (ca * ma + cb * mb) / (ca + cb)
-        var = 1.0 / np.maximum(total, 1e-300)
-        if carry_var_m2 is not None:  # as RangeMatrix's: the directions weighted as their means
-            var = var + np.nan_to_num((ca * carry_var_m2[:, iu, ju] + cb * carry_var_m2[:, ju, iu]) / (ca + cb))
+    info_a, info_b = ca / range_std_m**2, cb / range_std_m**2
+    with np.errstate(invalid="ignore", divide="ignore"):  # incomplete teams: NaN / inf, not used
+        if carry_var_m2 is None:
+            dist, var = combine_directions(ma, mb, info_a, info_b)
+        else:
+            dist, var = combine_directions(ma, mb, info_a, info_b, carry_var_m2[:, iu, ju], carry_var_m2[:, ju, iu])
     return complete, np.column_stack([iu, ju]), dist, var
 
 
