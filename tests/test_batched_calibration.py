@@ -136,3 +136,28 @@ def test_single_env_rounds_take_the_compiled_solve_and_get_the_full_solvers_answ
     assert poor[0] >= 2  # poor fits among them
     # every later calibration came from one of the two paths
     assert compiled[0] + full_calls[0] >= env.calibration_count - 1
+
+
+def test_a_near_collinear_team_is_handed_back_as_the_full_solver_rejects_it():
+    """Three anchors 10 m apart, the third 10-50 um off their line: J^T W J is positive definite
+    but its condition number is ~1e-12, so the full solver raises GeometryError. The compiled
+    team solve used to test positive definiteness alone and return "ok" with a 6.8e7 m^2
+    covariance; in per-anchor training the next relocation of such an anchor could not invert
+    that prior and ``step()`` raised."""
+    import pytest
+
+    from uwb_env.localization import GeometryError
+    from uwb_env.localization.batched_calibration import STATUS_NONE, later_calibrations, symmetric_arrays
+
+    for h in (1e-5, 5e-5):
+        x = np.array([[0.0, 0.0], [10.0, 0.0], [5.0, h]])
+        d = np.linalg.norm(x[:, None] - x[None], axis=2)
+        count = np.full((3, 3), 5) - 5 * np.eye(3, dtype=int)
+        mean = d.copy()
+        np.fill_diagonal(mean, np.nan)
+        _, pairs, dist, var = symmetric_arrays(mean[None], count[None], 0.06)
+        solved = later_calibrations(pairs, dist, var, x[None], "huber", 3.0, "anchor0")
+        assert solved.status[0] == STATUS_NONE and solved.result(0) is None
+        with pytest.raises(GeometryError):
+            calibrate_anchors(RangeMatrix(mean, np.full((3, 3), 0.06), count), prior=x, range_std_m=0.06,
+                              loss="huber", f_scale=3.0)

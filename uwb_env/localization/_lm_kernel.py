@@ -19,6 +19,9 @@ import numpy as np
 from numba import njit
 
 LOSS_CODES = {"linear": 0, "huber": 1, "soft_l1": 2, "cauchy": 3, "nlos": 4}
+# Below this reciprocal condition number of J^T W J the free coordinates are not fixed by
+# the ranges (collinear / coplanar anchors, too few pairs for a rigid shape).
+RCOND_MIN = 1e-10
 MESSAGES = ("max_iterations reached", "converged", "no decrease possible", "singular normal equations")
 
 
@@ -367,7 +370,11 @@ def _gauss_newton_team(xk, pi, pj, dist, sqrt_iv, column, code, c, max_iteration
 def _team_covariance(xk, pi, pj, dist, sqrt_iv, column, code, c, out, bufs, inv, e, col):
     """(J^T W J)^-1 at one team's solution (robust weights included) into ``out`` (n*dim,
     n*dim), zeros on the gauge-fixed coordinates; False (and NaN) where the information matrix
-    is not positive definite."""
+    is not positive definite or its reciprocal condition number is below ``RCOND_MIN`` (the
+    full solver's ``PairSolution.covariance`` test, with the same bound on the matrix's 1-norm
+    and the inverse's exact 1-norm, so never laxer: a 3-anchor team near a line once passed
+    the positive-definite test alone with a 4e36 m^2 covariance, and the next relocation of one
+    of its anchors could not invert that prior)."""
     z, u, _, _, a_mat, low, g, _, scratch, _ = bufs
     m = a_mat.shape[0]
     n_free = m - 1
@@ -377,12 +384,22 @@ def _team_covariance(xk, pi, pj, dist, sqrt_iv, column, code, c, out, bufs, inv,
     if not _cholesky_factor(a_mat, low):  # factored once, one substitution per column
         out[:, :] = np.nan
         return False
+    inv_norm = 0.0
     for q in range(m):
         e[:] = 0.0
         e[q] = 1.0
         _cholesky_substitute(low, e, col)
+        column_sum = 0.0
         for p in range(m):
             inv[p, q] = col[p]
+            column_sum += abs(col[p])
+        inv_norm = max(inv_norm, column_sum)
+    trace = 0.0
+    for q in range(m):
+        trace += a_mat[q, q]
+    if not 1.0 / (trace * math.sqrt(m) * inv_norm) > RCOND_MIN:
+        out[:, :] = np.nan
+        return False
     out[:, :] = 0.0
     for a in range(nd):
         ca = column[a]

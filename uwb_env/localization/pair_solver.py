@@ -32,12 +32,8 @@ from functools import lru_cache
 import numpy as np
 from scipy.linalg.lapack import dpocon, dposv
 
-from uwb_env.localization._lm_kernel import LOSS_CODES, MESSAGES, lm_pairs
+from uwb_env.localization._lm_kernel import LOSS_CODES, MESSAGES, RCOND_MIN, lm_pairs
 from uwb_env.localization.errors import GeometryError
-
-# Below this reciprocal condition number of J^T W J the free coordinates are not fixed by
-# the ranges (collinear / coplanar anchors, too few pairs for a rigid shape).
-RCOND_MIN = 1e-10
 
 
 @dataclass(frozen=True, eq=False)
