@@ -130,11 +130,8 @@ class RangeMatrix:
         if not (info_a + info_b).min() > 0:  # NaN stds
             return None
         carry = self.carry_var_m2
-        if carry is None:
-            mean, var = combine_directions(ma, mb, info_a, info_b)
-        else:
-            flat = carry.ravel()
-            mean, var = combine_directions(ma, mb, info_a, info_b, flat.take(upper), flat.take(lower))
+        carry_ab = () if carry is None else (carry.ravel().take(upper), carry.ravel().take(lower))
+        mean, var = combine_directions(ma, mb, info_a, info_b, *carry_ab)
         return pairs, mean, var
 
     def _symmetric_general(self, min_std_m: float, std_m: float | None):

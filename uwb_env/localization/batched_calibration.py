@@ -387,10 +387,8 @@ def symmetric_arrays(mean_m: np.ndarray, count: np.ndarray, range_std_m: float,
                     & (np.maximum(ma, mb) < np.inf).all(1))
     info_a, info_b = ca / range_std_m**2, cb / range_std_m**2
     with np.errstate(invalid="ignore", divide="ignore"):  # incomplete teams: NaN / inf, not used
-        if carry_var_m2 is None:
-            dist, var = combine_directions(ma, mb, info_a, info_b)
-        else:
-            dist, var = combine_directions(ma, mb, info_a, info_b, carry_var_m2[:, iu, ju], carry_var_m2[:, ju, iu])
+        carry = () if carry_var_m2 is None else (carry_var_m2[:, iu, ju], carry_var_m2[:, ju, iu])
+        dist, var = combine_directions(ma, mb, info_a, info_b, *carry)
     return complete, np.column_stack([iu, ju]), dist, var
 
 
