@@ -58,7 +58,7 @@ def name_of(dim: int, n: int, motion: str, nlos) -> str:
 def run_config(dim: int, n: int, motion: str, nlos, episodes: int, steps: int) -> tuple[np.ndarray, np.ndarray]:
     """NEES and mean squared anchor error (m^2) of every ok, unambiguous later round of
     ``episodes`` episodes."""
-    import uwb_env.system as system
+    import uwb_env.team_state as system  # the later rounds' solve (both envs)
     from uwb_env import parallel_env
     from uwb_env.localization.bounds import gauge_nees
 

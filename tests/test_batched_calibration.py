@@ -93,12 +93,14 @@ def test_single_env_rounds_take_the_compiled_solve_and_get_the_full_solvers_answ
     # the full solver: every compiled answer must be the one the full solver gives for the same
     # round, prior and weights.
     import uwb_env.system as system_module
+    import uwb_env.team_state as team_state
     from uwb_env.config import EnvConfig
+    from uwb_env.measurements import RangeMatrix
     from uwb_env.system import LocalizationSystem
 
     compiled, full_calls, checked = [0], [0], [0]
-    original_compiled = LocalizationSystem._later_calibration_compiled
-    original_full = system_module.calibrate_anchors
+    original_solve = system_module.solve_later_rounds
+    original_full = team_state.calibrate_anchors
 
     def counting_full(*args, **kwargs):
         full_calls[0] += 1
@@ -106,28 +108,30 @@ def test_single_env_rounds_take_the_compiled_solve_and_get_the_full_solvers_answ
 
     poor = [0]
 
-    def checked_compiled(self, matrix, est_mid, prior_std):
-        result = original_compiled(self, matrix, est_mid, prior_std)
-        if result is not None:
+    def checked_solve(mean, std, count, carry, est_mid, prior_std, solver, pair_range_std_m):
+        out = original_solve(mean, std, count, carry, est_mid, prior_std, solver, pair_range_std_m)
+        if out.compiled[0]:
             compiled[0] += 1
-            poor[0] += result.status == "poor_fit"
-            solver = self.config.solver
-            ref = original_full(matrix, dim=2, prior=est_mid, gauge=solver.gauge, loss=solver.loss,
-                                f_scale=solver.f_scale_sigmas, range_std_m=self.pair_range_std_m, prior_std_m=prior_std)
-            assert ref.status == result.status and not ref.ambiguous and not result.ambiguous
-            np.testing.assert_allclose(result.positions, ref.positions, atol=1e-6)
-            np.testing.assert_allclose(result.anchor_covariance(), ref.anchor_covariance(), rtol=1e-4, atol=1e-12)
-            assert abs(result.chi2 - ref.chi2) < 1e-6 * max(1.0, ref.chi2)
+            poor[0] += out.fit[0] == team_state.FIT_POOR
+            matrix = RangeMatrix(mean[0], std[0], count[0], None if carry is None else carry[0])
+            ref = original_full(matrix, dim=2, prior=est_mid[0], gauge=solver.gauge, loss=solver.loss,
+                                f_scale=solver.f_scale_sigmas, range_std_m=pair_range_std_m, prior_std_m=prior_std[0])
+            assert team_state.CALIBRATION_FIT_NAMES[out.fit[0]] == ref.status
+            assert not ref.ambiguous and not out.ambiguous[0]
+            np.testing.assert_allclose(out.positions[0], ref.positions, atol=1e-6)
+            np.testing.assert_allclose(out.anchor_cov[0], ref.anchor_covariance(), rtol=1e-4, atol=1e-12)
+            assert abs(out.chi2[0] - ref.chi2) < 1e-6 * max(1.0, ref.chi2)
+            assert abs(out.rms_m[0] - ref.rms_residual_m) < 1e-6
             checked[0] += 1
-        return result
+        return out
 
-    monkeypatch.setattr(LocalizationSystem, "_later_calibration_compiled", checked_compiled)
-    monkeypatch.setattr(system_module, "calibrate_anchors", counting_full)
+    monkeypatch.setattr(system_module, "solve_later_rounds", checked_solve)
+    monkeypatch.setattr(team_state, "calibrate_anchors", counting_full)
     # a harsher radio, its NLOS excess left out of the weights: poor fits to check too
     env = LocalizationSystem(EnvConfig.from_dict({"sim": {"ranging": {"nlos_probability": 0.2}}}))
     env.pair_range_std_m = env.range_std_m
     env.reset(np.random.default_rng(4))
-    full_calls[0] = 0  # the first calibration (reset) always takes the full solver
+    full_calls[0] = 0  # (the first calibration, at reset, takes the full solver of uwb_env.system)
     requests = np.ones(env.n_anchors, dtype=bool)
     for t in range(400):
         env.step(requests if t % 10 == 0 else ~requests)

@@ -13,30 +13,33 @@ from uwb_env.localization.bounds import gauge_nees
 
 
 def _later_nees(sim: dict, monkeypatch, episodes: int = 4, steps: int = 200) -> np.ndarray:
-    import uwb_env.system as system_module
+    import uwb_env.team_state as team_state
 
-    batched = system_module.later_calibrations
+    batched = team_state.later_calibrations
+    full = team_state.calibrate_anchors
 
     def hand_back_all(*args, **kwargs):  # every round to the full solver: its result has the gauge
         solved = batched(*args, **kwargs)
         solved.hand_back(np.arange(len(solved)))
         return solved
 
-    monkeypatch.setattr(system_module, "later_calibrations", hand_back_all)
     values = []
+    current = {}
+
+    def recording(*args, **kwargs):  # every later round's full solve, with the truth at its midpoint
+        result = full(*args, **kwargs)
+        if result.status == "ok" and not result.ambiguous:
+            system = current["system"]
+            truth = system.world.to_estimate_frame(system._round_path.midpoint_truth())
+            values.append(gauge_nees(result.positions, result.covariance, tuple(result.gauge_refs), truth)[0])
+        return result
+
+    monkeypatch.setattr(team_state, "later_calibrations", hand_back_all)
+    monkeypatch.setattr(team_state, "calibrate_anchors", recording)
     for seed in range(episodes):
         env = parallel_env(sim=sim, max_cycles=steps)
-        env.reset(seed=700 + seed)
-        system = env.system
-        apply = system._apply_calibration
-
-        def recording(result, *args, system=system, apply=apply):
-            if result.status == "ok" and not result.ambiguous:
-                truth = system.world.to_estimate_frame(system._round_path.midpoint_truth())
-                values.append(gauge_nees(result.positions, result.covariance, tuple(result.gauge_refs), truth)[0])
-            return apply(result, *args)
-
-        system._apply_calibration = recording
+        env.reset(seed=700 + seed)  # the first calibration is not a later one (not recorded)
+        current["system"] = env.system
         for t in range(steps):
             env.step({a: int(t % 10 == 0) for a in env.agents})
     return np.array(values)

@@ -144,7 +144,7 @@ def test_batched_later_calibrations_equal_the_full_solver_on_the_envs_rounds():
     """Every round the batched env solves in the batch (ok and, its approximation, poor fits)
     against the full solver with the same prior and prior std: same status, same positions,
     and none the full solver would call ambiguous."""
-    import uwb_env.batch as bm
+    import uwb_env.team_state as bm
     from uwb_env.batch import BatchedSystem
 
     log = []

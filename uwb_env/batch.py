@@ -9,8 +9,10 @@ rewards are computed for all copies at once. The pieces are the single env's: Wo
 placement, the round's exchange simulation (copies that start a round on the same step form a
 :class:`~uwb_env.sim.round_cohort.RoundCohort`), the same motion compensation, and the
 calibrations of all copies in one batched solve (``batched_calibration``, tested equal to the
-full solver; the single env's usual later rounds take it too); only what that solve hands back
-(missing pairs, thin layouts, pair rejection) goes to the full solver per copy.
+full solver); only what that solve hands back (missing pairs, thin layouts, pair rejection) goes
+to the full solver per copy. That solve, the update a calibration makes and the tag tracks and
+residual buffers are :mod:`uwb_env.team_state`'s, the very code the single env runs for a batch
+of one.
 
 Later rounds of 3-4 anchors that fit poorly take the full solver's further steps batched too
 (``later_calibrations(poor_fit_prior_std_m=...)``: cold starts, pick, unfold; 0 of ~7,400 kept
@@ -32,18 +34,12 @@ from uwb_env.config import EnvConfig
 from uwb_env.features import anchor_features
 from uwb_env.localization import calibrate_anchors
 from uwb_env.localization.alignment import rigid_align_batch
-from uwb_env.localization.batched_calibration import (
-    STATUS_NONE,
-    STATUS_POOR,
-    TeamSolutions,
-    first_calibrations,
-    later_calibrations,
-    symmetric_arrays,
-)
+from uwb_env.localization.batched_calibration import STATUS_NONE, first_calibrations, symmetric_arrays
 from uwb_env.localization.errors import LocalizationError
-from uwb_env.localization.multilateration import TAG_NO_FIX, fix_tags_2d
+from uwb_env.localization.multilateration import fix_tags_2d
 from uwb_env.measurements import RangeMatrix
 from uwb_env.rewards import reward_terms
+from uwb_env.sim.calibration_round import busy_fraction
 from uwb_env.sim.motion import MotionModel
 from uwb_env.sim.odometry import OdometryModel
 from uwb_env.sim.planar_errors import planar_errors
@@ -51,6 +47,7 @@ from uwb_env.sim.round_cohort import RoundCohort
 from uwb_env.sim.round_path import RoundPath
 from uwb_env.sim.world import formation_xy, tags_inside
 from uwb_env.system import OBS_FIELDS, LocalizationSystem
+from uwb_env.team_state import RoundSolutions, TeamState, solve_later_rounds
 
 
 class BatchedSystem:
@@ -97,20 +94,9 @@ class BatchedSystem:
         self._cohorts: dict[int, RoundCohort] = {}
         self._cohort_of = np.full(B, -1)
         self._next_cohort = 0
-        self.calibration_count = np.zeros(B, dtype=int)
         self.time_calibrating_s = np.zeros(B)
-        self.time_since_calibration_s = np.zeros((B, N))
-        self.steps_since_calibration = np.zeros((B, N))
-        self.calibration_var_m2 = np.zeros((B, N))
-        self.anchor_cov = np.zeros((B, N, 2, 2))
-        self.last_calibration_rms_m = np.zeros(B)
-        self.tag_fix = np.full((B, M, 2), np.nan)
-        self.tag_status = np.full((B, M), TAG_NO_FIX, dtype=np.int8)
-        self.tag_velocity = np.zeros((B, M, 2))
-        w = cfg.residual_window_steps
-        self._tag_res = np.zeros((B, w))
-        self._anchor_res = np.zeros((B, w, N))
-        self._hist = np.zeros(B, dtype=int)
+        # calibration bookkeeping, tag tracks, residual buffers: the single env's, for B teams
+        self.state = TeamState.new(B, N, M, 2, cfg.residual_window_steps)
         # First calibration of every copy (paper rules), robots moving meanwhile: one cohort.
         self._start_rounds(np.arange(B))
         (cohort,) = self._cohorts.values()
@@ -121,38 +107,30 @@ class BatchedSystem:
         mean, std, count, carry = self._round_statistics(cohort)
         est_now = self.anchors_est
         complete, pairs, dist, var = symmetric_arrays(mean, count, self.pair_range_std_m, carry)
-        results: list = [None] * B
-        batched = np.zeros(B, dtype=bool)
-        rows = np.flatnonzero(complete)
         solver = cfg.solver
+        solutions = RoundSolutions(B, N, 2)
+        rows = np.flatnonzero(complete)
         solved = first_calibrations(pairs, dist[rows], var[rows], solver.loss, solver.f_scale_sigmas)
-        solved_rows = solved.status != STATUS_NONE
-        batched[rows[solved_rows]] = True
-        for k in range(B):
-            if not batched[k]:  # thin layouts, missing pairs, poor fits: the full solver's starts
-                try:
-                    results[k] = calibrate_anchors(RangeMatrix(mean[k], std[k], count[k], _row(carry, k)), dim=2,
-                                                   loss=solver.loss,
-                                                   f_scale=solver.f_scale_sigmas, range_std_m=self.pair_range_std_m)
-                except LocalizationError:  # e.g. dropouts disconnected the graph: no shape this round
-                    results[k] = None
+        done = solved.status != STATUS_NONE
+        solutions.put_solved(rows[done], solved.subset(done))
+        for k in np.flatnonzero(~solutions.compiled):  # thin layouts, missing pairs, poor fits: the full solver
+            try:
+                matrix = RangeMatrix(mean[k], std[k], count[k], _row(carry, k))
+                solutions.put_result(k, calibrate_anchors(matrix, dim=2, loss=solver.loss,
+                                                          f_scale=solver.f_scale_sigmas,
+                                                          range_std_m=self.pair_range_std_m))
+            except LocalizationError as err:  # e.g. dropouts disconnected the graph: no shape this round
+                solutions.put_error(k, err)
         # A copy without a usable first calibration keeps its starting estimates in the world
         # frame (calibration_count 0: its features say it was never calibrated).
-        failed = np.array([not batched[k] and (r is None or r.status == "not_converged")
-                           for k, r in enumerate(results)])
-        positions = est_now.copy()
-        positions[rows[solved_rows]] = solved.positions[solved_rows]
-        for k in np.flatnonzero(~failed & ~batched):
-            positions[k] = results[k].positions
+        ok = solutions.applicable
+        positions = np.where(ok[:, None, None], solutions.positions, est_now)
         rot, origin = rigid_align_batch(true_mid, positions)  # estimate = truth @ R.T + t, per copy
-        rot[failed], origin[failed] = np.eye(2), 0.0
+        rot[~ok], origin[~ok] = np.eye(2), 0.0
         self.frame_rot, self.frame_origin = rot, -np.einsum("bji,bj->bi", rot, origin)
         since_mid = np.einsum("bnj,bij->bni", est_now - est_mid, rot)
-        if batched.any():
-            ks = rows[solved_rows]
-            self._apply_many(ks, solved.subset(solved_rows), since_mid[ks], _drift_rows(drift_mid, self.N, ks))
-        for k in np.flatnonzero(~failed & ~batched):
-            self._apply(k, results[k], since_mid[k], _drift_rows(drift_mid, self.N, [k]))
+        ks = np.flatnonzero(ok)
+        self._apply(ks, solutions, ks, since_mid[ks], _drift_rows(drift_mid, self.N, ks))
         self._end_cohort(cohort)
         self._fix_tags(np.ones(B, dtype=bool), cold=True)
 
@@ -170,23 +148,21 @@ class BatchedSystem:
             self._start_rounds(np.flatnonzero(started))
         t0 = self.time_s
         self._advance_world()
-        self.steps_since_calibration += 1
-        self.time_since_calibration_s += self.dt_s
+        self.state.tick(self.dt_s)
         busy = np.zeros(B)
         finished = np.zeros(B, dtype=bool)
         failed = np.zeros(B, dtype=bool)
         in_round = self._cohort_of >= 0
         for cohort in list(self._cohorts.values()):
-            busy[cohort.copies] = (min(cohort.end_time_s, self.time_s) - max(cohort.start_time_s, t0)) / self.dt_s
+            busy[cohort.copies] = busy_fraction(cohort, t0, self.time_s, self.dt_s)
             if cohort.done:
                 finished[cohort.copies] = True
                 failed[cohort.copies] = ~self._finish_cohort(cohort)
         self.time_calibrating_s += busy * self.dt_s
         # tags hold during rounds (and on the step a round ends, like the single env)
-        hold = in_round
-        if self.config.tag_fallback == "predict":
-            self.tag_fix[hold] += self.tag_velocity[hold] * self.dt_s
-        self._fix_tags(~hold)
+        if in_round.any():
+            self.state.hold_tags(in_round, self.dt_s, self.config.tag_fallback == "predict")
+        self._fix_tags(~in_round)
         return {"round_started": started, "round_finished": finished & ~failed, "calibration_failed": failed,
                 "calibrating_fraction": busy}
 
@@ -233,80 +209,39 @@ class BatchedSystem:
         return cohort.path.carry(mean, times), std, count, cohort.path.carry_var_m2(times, self.odometry)
 
     def _finish_cohort(self, cohort: RoundCohort) -> np.ndarray:
-        """Solve the rounds of a finished cohort: the usual case (every pair, a fit the verdict
-        accepts) in one batched Gauss-Newton, the rest with the full solver per copy (the same
-        answers: the batched solve hands back whatever needs more). Returns ok per copy."""
+        """Solve the rounds of a finished cohort (``team_state.solve_later_rounds``: the usual
+        case in one batched Gauss-Newton, the rest with the full solver per copy) and apply
+        them. Returns ok per copy."""
         copies = cohort.copies
         mean, std, count, carry = self._round_statistics(cohort)
         self._end_cohort(cohort)
         est_mid, drift_mid = cohort.path.midpoint_estimates(), cohort.path.midpoint_drift()
-        complete, pairs, dist, var = symmetric_arrays(mean, count, self.pair_range_std_m, carry)
-        ok = np.zeros(len(copies), dtype=bool)
-        rows = np.flatnonzero(complete)
-        if len(rows):
-            solver = self.config.solver
-            prior_std = np.sqrt(np.maximum(self.predicted_anchor_var_m2()[copies[rows]], self.range_std_m**2))
-            solved = later_calibrations(pairs, dist[rows], var[rows], est_mid[rows], solver.loss,
-                                        solver.f_scale_sigmas, solver.gauge, poor_fit_prior_std_m=prior_std)
-            done = solved.status != STATUS_NONE
-            ok[rows[done]] = True
-            if done.any():
-                rows = rows[done]
-                self._apply_many(copies[rows], solved.subset(done), self.anchors_est[copies[rows]] - est_mid[rows],
-                                 _drift_rows(drift_mid, self.N, rows))
-        for row, k in enumerate(copies):
-            if ok[row]:
-                continue
-            try:
-                matrix = RangeMatrix(mean[row], std[row], count[row], _row(carry, row))
-            except LocalizationError:  # as the single env: keep odometry, report the failure
-                continue
-            ok[row] = self._finish_round(k, matrix, est_mid[row], _drift_rows(drift_mid, self.N, [row]))
+        prior_std = np.sqrt(np.maximum(self.predicted_anchor_var_m2()[copies], self.range_std_m**2))
+        solutions = solve_later_rounds(mean, std, count, carry, est_mid, prior_std, self.config.solver,
+                                       self.pair_range_std_m)
+        ok = solutions.applicable
+        rows = np.flatnonzero(ok)
+        self._apply(copies[rows], solutions, rows, self.anchors_est[copies[rows]] - est_mid[rows],
+                    _drift_rows(drift_mid, self.N, rows))
         return ok
 
-    def _finish_round(self, k: int, matrix, est_mid: np.ndarray, drift_mid: dict) -> bool:
-        solver = self.config.solver
-        try:
-            result = calibrate_anchors(matrix, dim=2, prior=est_mid,
-                                       gauge=solver.gauge, loss=solver.loss, f_scale=solver.f_scale_sigmas,
-                                       range_std_m=self.pair_range_std_m,
-                                       prior_std_m=np.sqrt(np.maximum(self._predicted_var_of(k), self.range_std_m**2)))
-        except LocalizationError:
-            return False
-        if result.status == "not_converged":  # as the single env: keep odometry, report the failure
-            return False
-        self._apply(k, result, self.anchors_est[k] - est_mid, drift_mid)
-        return True
-
-    def _apply_many(self, ks: np.ndarray, solved: TeamSolutions, since_mid: np.ndarray, drift_mid: dict) -> None:
-        """:meth:`_apply` for many copies' batched results at once (``solved``: one team per k)."""
-        n = self.N
-        full = solved.covariance.reshape(len(ks), n, 2, n, 2).transpose(0, 1, 3, 2, 4)
-        idx = np.arange(n)
-        poor = solved.status == STATUS_POOR
-        scale = np.where(poor, np.maximum(1.0, solved.chi2 / max(solved.dof, 1)), 1.0)
-        self.anchors_est[ks] = solved.positions + since_mid
-        self.anchor_cov[ks] = scale[:, None, None, None] * full[:, idx, idx]
-        self.calibration_var_m2[ks] = np.trace(self.anchor_cov[ks], axis1=2, axis2=3)
-        self.last_calibration_rms_m[ks] = np.sqrt(np.mean(solved.residuals_m**2, axis=1))
-        self.calibration_count[ks] += 1
-        self.time_since_calibration_s[ks] = 0.0
-        self.steps_since_calibration[ks] = 0
+    def _apply(self, ks: np.ndarray, solutions: RoundSolutions, which: np.ndarray, since_mid: np.ndarray,
+               drift_mid: dict) -> None:
+        """Copies ``ks`` take ``solutions``' teams ``which`` (the single env's update) and
+        restart their robots' drift from the round's midpoint."""
+        if not len(ks):
+            return
+        self.state.apply_calibrations(ks, self.anchors_est, solutions, which, since_mid)
         self.odometry.restart_drift(self._robots_of(ks), since=drift_mid)
-        self._hist[ks] = 0
 
-    def _apply(self, k: int, result, since_mid: np.ndarray, drift_mid: dict) -> None:
-        self.anchors_est[k] = result.positions + since_mid
-        # as the single env: a poor fit's covariance scaled by its reduced chi-square
-        scale = max(1.0, result.chi2 / max(result.dof, 1)) if result.status == "poor_fit" else 1.0
-        self.anchor_cov[k] = scale * result.anchor_covariance()
-        self.calibration_var_m2[k] = np.trace(self.anchor_cov[k], axis1=1, axis2=2)
-        self.last_calibration_rms_m[k] = result.rms_residual_m
-        self.calibration_count[k] += 1
-        self.time_since_calibration_s[k] = 0.0
-        self.steps_since_calibration[k] = 0
-        self.odometry.restart_drift(self._robots_of([k]), since=drift_mid)
-        self._hist[k] = 0
+    # -- views of the state -------------------------------------------------------------------------
+    @property
+    def calibration_count(self) -> np.ndarray:
+        return self.state.calibration_count
+
+    @property
+    def tag_fix(self) -> np.ndarray:
+        return self.state.tag_fix
 
     # -- tags --------------------------------------------------------------------------------------
     def _robots_of(self, copies) -> np.ndarray:
@@ -316,10 +251,7 @@ class BatchedSystem:
 
 
     def predicted_anchor_var_m2(self) -> np.ndarray:
-        return self.calibration_var_m2 + self.odometry.expected_drift_var_m2(2).reshape(self.B, self.N)
-
-    def _predicted_var_of(self, k: int) -> np.ndarray:
-        return self.calibration_var_m2[k] + self.odometry.expected_drift_var_m2(2, slice(k * self.N, (k + 1) * self.N))
+        return self.state.calibration_var_m2 + self.odometry.expected_drift_var_m2(2).reshape(self.B, self.N)
 
     def _fix_tags(self, copies: np.ndarray, cold: bool = False) -> None:
         if self.M == 0 or not copies.any():
@@ -333,30 +265,17 @@ class BatchedSystem:
         ranges = np.maximum(self.range_model.correct(raw), 0.0)
         anchors = self.anchors_est[rows]
         solver = self.config.solver
+        st = self.state
         # the single env's tag fixing (one compiled pass: track, restart, mirror check,
         # residual statistics); at reset (cold) every tag starts from the closed form
-        previous = np.full((len(sel), self.M, 2), np.nan) if cold else self.tag_fix[rows]
+        previous = np.full((len(sel), self.M, 2), np.nan) if cold else st.tag_fix[rows]
         step = fix_tags_2d(anchors, previous, ranges, self.range_std_m**2, self.predicted_anchor_var_m2()[rows],
-                           self.calibration_var_m2[rows], self.anchor_cov[rows] if solver.use_anchor_covariance
+                           st.calibration_var_m2[rows], st.anchor_cov[rows] if solver.use_anchor_covariance
                            else None, solver.loss, solver.f_scale_sigmas, solver.tag_iterations,
                            solver.tag_restart_residual_m)
-        pos = step.positions
-        self.tag_status[rows] = step.status
-        ok = np.isfinite(pos).all(axis=2)
-        old = self.tag_fix[rows]
-        new = np.where(ok[..., None], pos, old)
-        had = np.isfinite(old).all(axis=2) & ok
-        self.tag_velocity[rows] = np.where(had[..., None], (new - np.nan_to_num(old)) / self.dt_s,
-                                           self.tag_velocity[rows])
-        self.tag_fix[rows] = new
-        # residual statistics per copy, of the fixes made this step (as the single env's)
-        tag_mean, anchor_mean, any_ok = step.tag_residual_m, step.anchor_residual_m, step.any_fix
-        w = self.config.residual_window_steps
-        slot = self._hist[sel] % w
-        prev = (slot - 1) % w
-        self._tag_res[sel, slot] = np.where(any_ok, tag_mean, self._tag_res[sel, prev])
-        self._anchor_res[sel, slot] = np.where(any_ok[:, None], anchor_mean, self._anchor_res[sel, prev])
-        self._hist[sel] += 1
+        st.tag_status[rows] = step.status
+        st.record_tag_fixes(rows, step.positions, step.rms_m, step.tag_residual_m, step.anchor_residual_m,
+                            step.any_fix, self.dt_s, self.config.tag_fallback == "predict")
 
     # -- observations and metrics --------------------------------------------------------------------
     def features(self) -> np.ndarray:
@@ -365,16 +284,17 @@ class BatchedSystem:
         progress = np.zeros(self.B)
         for cohort in self._cohorts.values():
             progress[cohort.copies] = cohort.progress
-        return anchor_features(self.anchors_est, self.time_since_calibration_s, self.predicted_anchor_var_m2(),
-                               self.calibration_var_m2, self.last_calibration_rms_m, self._tag_res, self._anchor_res,
-                               np.minimum(self._hist, self.config.residual_window_steps).astype(np.int64),
-                               (self._cohort_of >= 0).astype(np.float64), progress, self.obs_low, self.obs_high)
+        st = self.state
+        return anchor_features(self.anchors_est, st.time_since_calibration_s, self.predicted_anchor_var_m2(),
+                               st.calibration_var_m2, st.last_calibration_rms_m, st.tag_residual_hist,
+                               st.anchor_residual_hist, st.filled(), (self._cohort_of >= 0).astype(np.float64),
+                               progress, self.obs_low, self.obs_high)
 
     def errors_m(self) -> tuple[np.ndarray, np.ndarray]:
         """(B, N) anchor and (B, M) tag errors after each copy's rigid constellation alignment
         (the single env's kernel, ``sim.planar_errors``), tag errors capped at ``error_cap_m``."""
         a_const, t_const, _, _, _ = planar_errors(self.frame_rot, self.frame_origin, self.anchors_true, self.tags_true,
-                                                  self.anchors_est, self.tag_fix, float(self.config.error_cap_m))
+                                                  self.anchors_est, self.state.tag_fix, float(self.config.error_cap_m))
         return a_const, t_const
 
     def rewards(self, report: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -22,7 +22,6 @@ from uwb_env.config import EnvConfig
 from uwb_env.features import anchor_features
 from uwb_env.localization import GeometryError, LocalizationError, calibrate_anchors, locate_tags, rigid_align
 from uwb_env.localization._tracking_kernel import residual_statistics
-from uwb_env.localization.batched_calibration import later_calibrations, symmetric_arrays
 from uwb_env.localization.calibration import calibrate_anchors_known_heights
 from uwb_env.localization.multilateration import (
     TAG_NO_FIX,
@@ -36,11 +35,10 @@ from uwb_env.localization.relocation import relocate_anchor
 from uwb_env.measurements import pool_rounds
 from uwb_env.rewards import reward_terms
 from uwb_env.sim import RangeModel, World
+from uwb_env.sim.calibration_round import busy_fraction
 from uwb_env.sim.planar_errors import planar_errors
 from uwb_env.sim.round_path import RoundPath, pair_mean_times_s
-
-# CalibrationResult.status values, in the order of the ``calibration_fit`` code
-CALIBRATION_FIT_NAMES = ("ok", "poor_fit", "not_converged")
+from uwb_env.team_state import CALIBRATION_FIT_NAMES, FIT_ERROR, RoundSolutions, TeamState, solve_later_rounds
 
 
 def _first_rank(result) -> tuple:
@@ -111,31 +109,19 @@ class LocalizationSystem:
         self.world.reset(rng)
         # Per-step caches are keyed by step and calibration counts, which repeat across episodes.
         self._cache_stamp = self._transform_key = None
-        self.calibration_count = 0
+        # the calibration bookkeeping and tag tracks: a batch of one of the batched env's state
+        # (uwb_env.team_state; the properties below are views of its row)
+        self.state = TeamState.new(1, n, m, dim, cfg.residual_window_steps)
         self.anchor_round_count = 0
+        self._estimates_epoch = 0  # calibrations applied (team and per-anchor): keys the per-step caches
         self.time_calibrating_s = 0.0
-        self.time_since_calibration_s = np.zeros(n)
-        self.steps_since_calibration = np.zeros(n)
-        self.calibration_var_m2 = np.zeros(n)
-        self.anchor_cov = np.zeros((n, dim, dim))
-        self.last_calibration_rms_m = 0.0
-        self.tag_fix = np.full((m, dim), np.nan)
-        self.tag_velocity = np.zeros((m, dim))
-        self.tag_fix_age_s = np.zeros(m)
-        self.tag_status = np.full(m, TAG_NO_FIX, dtype=np.int8)  # multilateration.TAG_STATUS_NAMES
         self.tag_refits = 0  # cold re-solves of stuck tags (diagnostics)
         # the last team round's fit verdict (CALIBRATION_FIT_NAMES), shape ambiguity and chi2/dof
         self.calibration_fit, self.calibration_ambiguous, self.calibration_chi2_per_dof = 0, False, 0.0
-        self.calibrations_poor_fit = 0
         self.tag_mirror_switches = 0  # fixes the ranges rejected in favour of their mirror
-        w = cfg.residual_window_steps
-        self._tag_residual_hist = np.zeros(w)
-        self._anchor_residual_hist = np.zeros((w, n))
-        self._hist_index = 0
         self.last_round_links: np.ndarray | None = None
         self._round_path = self._new_round_path()  # the first calibration's rounds, all of them
         result = self._first_calibration()
-        self._record_verdict(result)
         # The solution describes the robots at the rounds' midpoint; the solver's frame
         # becomes the estimate frame: est = R (world - origin).
         path = self._round_path
@@ -145,8 +131,34 @@ class LocalizationSystem:
             rot, trans = np.eye(dim), np.zeros(dim)
         self.world.set_estimate_frame(rot, -rot.T @ trans)
         odometry_since_mid = (self.world.anchors_est - path.midpoint_estimates()) @ rot.T
-        self._apply_calibration(result, odometry_since_mid, path.midpoint_drift())
+        solutions = RoundSolutions(1, n, dim)
+        solutions.put_result(0, result)
+        self._apply_solutions(solutions, odometry_since_mid, path.midpoint_drift())
         self._fix_tags()
+
+    # views of the state's row (properties, not attributes bound at reset: a deepcopy or pickle
+    # would copy bound views as arrays of their own, cut off from the state)
+    time_since_calibration_s = property(lambda self: self.state.time_since_calibration_s[0])
+    steps_since_calibration = property(lambda self: self.state.steps_since_calibration[0])
+    calibration_var_m2 = property(lambda self: self.state.calibration_var_m2[0])
+    anchor_cov = property(lambda self: self.state.anchor_cov[0])
+    tag_fix = property(lambda self: self.state.tag_fix[0])
+    tag_velocity = property(lambda self: self.state.tag_velocity[0])
+    tag_fix_age_s = property(lambda self: self.state.tag_fix_age_s[0])
+    tag_status = property(lambda self: self.state.tag_status[0], doc="multilateration.TAG_STATUS_NAMES per tag")
+
+    @property
+    def calibration_count(self) -> int:
+        """Team calibrations applied this episode (the first one included)."""
+        return int(self.state.calibration_count[0])
+
+    @property
+    def calibrations_poor_fit(self) -> int:
+        return int(self.state.calibrations_poor_fit[0])
+
+    @property
+    def last_calibration_rms_m(self) -> float:
+        return float(self.state.last_calibration_rms_m[0])
 
     def _new_round_path(self) -> RoundPath:
         world = self.world
@@ -252,14 +264,12 @@ class LocalizationSystem:
             started = True
         t0 = world.time_s
         world.step()
-        self.steps_since_calibration += 1
-        self.time_since_calibration_s += dt
+        self.state.tick(dt)
         report = StepReport(started, False, ignored, 0.0, round_anchor=round_anchor)
         if world.round is not None:
             rnd = world.round
             self._record_round_step()
-            busy_until = min(rnd.end_time_s, world.time_s)
-            report.calibrating_fraction = (busy_until - max(rnd.start_time_s, t0)) / dt
+            report.calibrating_fraction = busy_fraction(rnd, t0, world.time_s, dt)
             self.time_calibrating_s += report.calibrating_fraction * dt
             self.last_round_links = np.column_stack([rnd.initiator, rnd.responder])
             if rnd.done:
@@ -285,7 +295,6 @@ class LocalizationSystem:
         finished = self.world.finish_calibration_round()
         if getattr(finished, "initiators", None) is not None:
             return self._finish_anchor_round(finished)
-        solver = self.config.solver
         # Motion compensation: the ranges were taken while the robots moved, so the solution
         # describes them at the round's midpoint (each pair carried there along the estimated
         # path). Solve against the mid-round estimates and carry the result to now with the
@@ -295,43 +304,32 @@ class LocalizationSystem:
         try:
             matrix = self.world.round_correction.correct_matrix(finished.result())  # hardware: raises on failure
             matrix = self._to_round_midpoint(matrix, finished)
-            # the usual round (2D, every pair): the batched env's compiled solve for a team of
-            # one, its poor fits of 3-4 anchors taken through the full solver's further steps
-            # batched (the same answers; tested against the full solver); whatever it hands
-            # back goes to the full solver's starts and checks
-            prior_std = np.sqrt(np.maximum(self.predicted_anchor_var_m2(), self.range_std_m**2))
-            result = self._later_calibration_compiled(matrix, est_mid, prior_std) if self.dim == 2 else None
-            if result is None:
-                result = calibrate_anchors(
-                    matrix, dim=self.dim, prior=est_mid, gauge=solver.gauge, loss=solver.loss,
-                    f_scale=solver.f_scale_sigmas, range_std_m=self.pair_range_std_m, prior_std_m=prior_std,
-                )
-        except LocalizationError as err:  # e.g. dropouts disconnected the graph: keep odometry
+        except LocalizationError as err:
             return f"{type(err).__name__}: {err}"
-        self._record_verdict(result)
-        if result.status == "not_converged":  # no solution to speak of: keep odometry, say why
-            return f"calibration not converged: {result.message}"
-        self._apply_calibration(result, self.world.anchors_est - est_mid, path.midpoint_drift())
-        return None
-
-    def _later_calibration_compiled(self, matrix, est_mid: np.ndarray, prior_std: np.ndarray):
-        """``batched_calibration.later_calibrations`` for this team alone, as the batched env
-        calls it: its result, or None where the full solver would do more (a missing pair, a
-        rejected fit it can work on, an ambiguous shape)."""
+        # the batched env's solve for a team of one (compiled for the usual 2D round, the full
+        # solver's starts and checks for whatever it hands back)
+        prior_std = np.sqrt(np.maximum(self.predicted_anchor_var_m2(), self.range_std_m**2))
         carry = None if matrix.carry_var_m2 is None else matrix.carry_var_m2[None]
-        complete, pairs, dist, var = symmetric_arrays(matrix.mean_m[None], matrix.count[None], self.pair_range_std_m,
-                                                      carry)
-        if not complete[0]:
-            return None
-        solver = self.config.solver
-        solved = later_calibrations(pairs, dist, var, est_mid[None], solver.loss, solver.f_scale_sigmas,
-                                    solver.gauge, poor_fit_prior_std_m=prior_std[None])
-        return solved.result(0)
+        solutions = solve_later_rounds(matrix.mean_m[None], matrix.std_m[None], matrix.count[None], carry,
+                                       est_mid[None], prior_std[None], self.config.solver, self.pair_range_std_m)
+        return self._apply_solutions(solutions, self.world.anchors_est - est_mid, path.midpoint_drift())
 
-    def _record_verdict(self, result) -> None:
-        self.calibration_fit = CALIBRATION_FIT_NAMES.index(result.status)
-        self.calibration_ambiguous = bool(result.ambiguous)
-        self.calibration_chi2_per_dof = result.chi2 / result.dof if result.dof > 0 else 0.0
+    def _apply_solutions(self, solutions: RoundSolutions, since_mid: np.ndarray, drift_at_mid: dict) -> str | None:
+        """Record the round's verdict and apply its solution (``TeamState.apply_calibrations``);
+        the failure's message where there is none to apply (odometry kept)."""
+        fit = int(solutions.fit[0])
+        if fit == FIT_ERROR:  # e.g. dropouts disconnected the graph
+            return solutions.message[0]
+        self.calibration_fit = fit
+        self.calibration_ambiguous = bool(solutions.ambiguous[0])
+        self.calibration_chi2_per_dof = float(solutions.chi2_per_dof[0])
+        if not solutions.applicable[0]:  # no solution to speak of: keep odometry, say why
+            return solutions.message[0]
+        self.state.apply_calibrations(slice(None), self.world.anchors_est[None], solutions, slice(None),
+                                      since_mid[None])
+        self._estimates_epoch += 1
+        self.world.odometry.restart_drift(since=drift_at_mid)
+        return None
 
     def _pair_times(self, finished) -> np.ndarray | None:
         times = getattr(finished, "times_s", None)  # hardware rounds report the matrix only
@@ -373,6 +371,7 @@ class LocalizationSystem:
         self.anchor_cov[i] = res.covariance
         self.calibration_var_m2[i] = float(np.trace(res.covariance))
         self.anchor_round_count += 1
+        self._estimates_epoch += 1
         self.time_since_calibration_s[i] = 0.0
         self.steps_since_calibration[i] = 0
         self.world.odometry.restart_drift(i, since={k: v[i] for k, v in path.midpoint_drift().items()})
@@ -384,23 +383,6 @@ class LocalizationSystem:
         pred = self.predicted_anchor_var_m2()
         drift = np.maximum(pred - self.calibration_var_m2, 0.0) / self.dim + self.range_std_m**2
         return self.anchor_cov + drift[:, None, None] * self._eye
-
-    def _apply_calibration(self, result, odometry_since_mid: np.ndarray, drift_at_mid: dict) -> None:
-        self.world.anchors_est = result.positions + odometry_since_mid
-        # A poor fit (e.g. an NLOS-biased pair the few spare pairs cannot single out) is still the
-        # best shape the ranges give, but its noise-model covariance is too small: scale it by
-        # the reduced chi-square (the Birge ratio), so the predicted errors say what we know.
-        scale = max(1.0, self.calibration_chi2_per_dof) if result.status == "poor_fit" else 1.0
-        self.anchor_cov = scale * result.anchor_covariance()
-        self.calibrations_poor_fit += result.status == "poor_fit"
-        self.calibration_var_m2 = np.trace(self.anchor_cov, axis1=1, axis2=2)
-        self.last_calibration_rms_m = result.rms_residual_m
-        self.calibration_count += 1
-        self.time_since_calibration_s[:] = 0.0
-        self.steps_since_calibration[:] = 0
-        self.world.odometry.restart_drift(since=drift_at_mid)
-        # Residuals of fixes against the old estimates say nothing about the new ones.
-        self._hist_index = 0
 
     # -- tags ------------------------------------------------------------------------------------
     def predicted_anchor_var_m2(self) -> np.ndarray:
@@ -418,46 +400,26 @@ class LocalizationSystem:
         solver = self.config.solver
         pred_var = self.predicted_anchor_var_m2()
         anchors = world.anchors_est
-        all_fixed_before = bool(np.isfinite(self.tag_fix).all())
+        st = self.state
         if self.dim == 2:
             # the batched env's tag fixing for a batch of one (one compiled pass: track, restart
             # stuck tags from the closed form, mirror check, residual statistics)
-            step = fix_tags_2d(anchors[None], self.tag_fix[None], ranges[None], self.range_std_m**2, pred_var[None],
-                               self.calibration_var_m2[None],
-                               self.anchor_cov[None] if solver.use_anchor_covariance else None, solver.loss,
-                               solver.f_scale_sigmas, solver.tag_iterations, solver.tag_restart_residual_m)
-            positions, rms = step.positions[0], step.rms_m[0]
+            step = fix_tags_2d(anchors[None], st.tag_fix, ranges[None], self.range_std_m**2, pred_var[None],
+                               st.calibration_var_m2, st.anchor_cov if solver.use_anchor_covariance else None,
+                               solver.loss, solver.f_scale_sigmas, solver.tag_iterations,
+                               solver.tag_restart_residual_m)
+            positions, rms = step.positions, step.rms_m
             self.tag_refits += int(step.refit.sum())
             self.tag_mirror_switches += int(step.switched.sum())
-            self.tag_status = step.status[0]
+            self.tag_status[:] = step.status[0]
             residuals = step.tag_residual_m, step.anchor_residual_m, step.any_fix
         else:
             positions, rms, residuals = self._fix_tags_3d(anchors, ranges, pred_var, solver)
-        dt = world.dt_s
-        all_ok = math.isfinite(_sum(rms))  # a tag without a fix has a NaN rms
-        ok = np.isfinite(rms)
-        if all_ok and all_fixed_before:  # the usual step: every tag fixed now and before
-            self.tag_velocity = (positions - self.tag_fix) / (self.tag_fix_age_s + dt)[:, None]
-            self.tag_fix = positions
-            self.tag_fix_age_s = np.zeros(self.n_tags)
-        else:
-            new = np.where(ok[:, None], positions, self.tag_fix)
-            had = np.isfinite(self.tag_fix).all(1) & ok
-            elapsed = np.maximum(self.tag_fix_age_s + dt, dt)[:, None]
-            self.tag_velocity = np.where(had[:, None], (new - np.nan_to_num(self.tag_fix)) / elapsed,
-                                         self.tag_velocity)
-            self.tag_fix = new
-            self.tag_fix_age_s = np.where(ok, 0.0, self.tag_fix_age_s + dt)
-        # Residual statistics: what a deployed system can see that its anchors went stale (the
-        # batched env's kernel, for a batch of one).
-        i = self._hist_index % self.config.residual_window_steps
-        tag_mean, anchor_mean, any_fix = residuals
-        if any_fix[0]:
-            self._tag_residual_hist[i], self._anchor_residual_hist[i] = tag_mean[0], anchor_mean[0]
-        else:  # no usable fix this step: carry the previous statistics
-            self._tag_residual_hist[i] = self._tag_residual_hist[i - 1]
-            self._anchor_residual_hist[i] = self._anchor_residual_hist[i - 1]
-        self._hist_index += 1
+            positions, rms = positions[None], rms[None]
+        # the fixes, and the residual statistics: what a deployed system can see that its
+        # anchors went stale (the batched env's bookkeeping, for a batch of one)
+        st.record_tag_fixes(slice(None), positions, rms, *residuals, world.dt_s,
+                            self.config.tag_fallback == "predict")
 
     def _fix_tags_3d(self, anchors, ranges, pred_var, solver) -> tuple:
         """3D tags: the general solver from the last fixes (restarting stuck ones), then the
@@ -488,27 +450,24 @@ class LocalizationSystem:
             rms = np.where(np.isfinite(rms) & (n_ranges > 0), np.sqrt(mean_sq), rms)
         # the 2D step's fit test: a fix whose ranges the anchors cannot explain is a poor fit
         poor = (status == TAG_OK) & tag_fit_rejected(anchors, positions, ranges, self.range_std_m**2, pred_var)
-        self.tag_status = np.where(np.isfinite(rms), np.where(poor, TAG_POOR_FIT, status), TAG_NO_FIX).astype(np.int8)
+        self.tag_status[:] = np.where(np.isfinite(rms), np.where(poor, TAG_POOR_FIT, status), TAG_NO_FIX)
         fixed = np.where(np.isfinite(rms)[:, None], positions, np.nan)
         return positions, rms, residual_statistics(anchors[None], fixed[None], ranges[None])
 
     def _hold_tags(self, dt: float) -> None:
-        self.tag_fix_age_s += dt
-        if self.config.tag_fallback == "predict":
-            self.tag_fix = self.tag_fix + self.tag_velocity * dt
+        self.state.hold_tags(slice(None), dt, self.config.tag_fallback == "predict")
 
     # -- features and metrics ----------------------------------------------------------------------
     def anchor_features(self) -> np.ndarray:
         """(n_anchors, dim + len(OBS_FIELDS)) float32 features, clipped to the declared bounds
         (the batched env's kernel, ``features.anchor_features``, for a batch of one)."""
-        world = self.world
+        world, st = self.world, self.state
         rnd = world.round
         low, high = self._bounds
         return anchor_features(
-            world.anchors_est[None], self.time_since_calibration_s[None], self.predicted_anchor_var_m2()[None],
-            self.calibration_var_m2[None], np.array([self.last_calibration_rms_m], dtype=np.float64),
-            self._tag_residual_hist[None], self._anchor_residual_hist[None],
-            np.array([min(self._hist_index, self.config.residual_window_steps)], dtype=np.int64),
+            world.anchors_est[None], st.time_since_calibration_s, self.predicted_anchor_var_m2()[None],
+            st.calibration_var_m2, st.last_calibration_rms_m, st.tag_residual_hist, st.anchor_residual_hist,
+            st.filled(),
             np.array([float(rnd is not None)]), np.array([rnd.progress if rnd is not None else 0.0]), low, high)[0]
 
     def feature_bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -579,7 +538,7 @@ class LocalizationSystem:
 
     def _cached(self, key, compute):
         # Metrics are read several times per step (reward, infos): compute each once per step.
-        stamp = (self.world.step_count, self.calibration_count, self.anchor_round_count)
+        stamp = (self.world.step_count, self._estimates_epoch)
         if getattr(self, "_cache_stamp", None) != stamp:
             self._cache_stamp, self._cache = stamp, {}
         if key not in self._cache:
@@ -606,7 +565,7 @@ class LocalizationSystem:
         else:
             # Residual proxy (no truth on hardware): the tag fixes' RMS residual since the last
             # calibration stands for the tag error, the predicted std for the anchor error.
-            filled = min(self._hist_index, cfg.residual_window_steps)
-            tag = float(self._tag_residual_hist[:filled].mean()) if filled else 0.0
+            filled = int(self.state.filled()[0])
+            tag = float(self.state.tag_residual_hist[0, :filled].mean()) if filled else 0.0
             anchor = float(np.sqrt(self.predicted_anchor_var_m2()).mean())
         return reward_terms(cfg, tag, anchor, report.calibrating_fraction, float(report.round_started))

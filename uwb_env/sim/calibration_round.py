@@ -75,6 +75,13 @@ def exchange_ranges(times_s, t0_s, t1_s, anchors_t0, anchors_t1, initiator, resp
     return range_model.measure(np.linalg.norm(pi - pj, axis=-1), rng)
 
 
+def busy_fraction(rnd, t0_s: float, t1_s: float, dt_s: float):
+    """The fraction of the step (t0, t1] (of length ``dt_s``) that the round ``rnd`` (anything
+    with ``start_time_s`` and ``end_time_s``: a round, a cohort, a hardware round) held the
+    channel: the time the tags could not be ranged."""
+    return (min(rnd.end_time_s, t1_s) - max(rnd.start_time_s, t0_s)) / dt_s
+
+
 class CalibrationRound:
     """Collects the exchanges of one round as simulated time advances.
 
