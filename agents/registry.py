@@ -79,6 +79,16 @@ def _lookahead(param: str | None, clairvoyant: bool):
     return (ClairvoyantPolicy if clairvoyant else LookaheadPolicy)(**kwargs)
 
 
+def _rollout(param: str | None, dt_s: float):
+    """``rollout:H@BASE``: horizon H steps over the base scheduler spec BASE."""
+    from uwb_env.agents.lookahead import RolloutPolicy
+
+    horizon, at, base = (param or "").partition("@")
+    if not at or not base:
+        raise ValueError("rollout needs a base scheduler: rollout:H@BASE, e.g. rollout:60@per_anchor_drift:0.2")
+    return RolloutPolicy(base, horizon_steps=int(horizon) if horizon else 60, dt_s=dt_s)
+
+
 def _rllib(path: str, dt_s: float):
     from uwb_env.agents.learned_rllib import RLlibPolicy
 
@@ -103,6 +113,8 @@ POLICIES: dict[str, tuple[Callable, str]] = {
     "oracle": (lambda p, dt: OraclePolicy(float(p or 0.3)), "true mean anchor error threshold (m); GROUND TRUTH"),
     "lookahead": (lambda p, dt: _lookahead(p, False), "H[@K]: planner over sampled futures, horizon H steps "
                   "(default 30), base fixed interval K (default 10); GROUND TRUTH"),
+    "rollout": (lambda p, dt: _rollout(p, dt), "H@BASE: one step of policy improvement over the scheduler BASE "
+                "(e.g. the tuned best heuristic), horizon H steps; GROUND TRUTH"),
     "clairvoyant": (lambda p, dt: _lookahead(p, True), "H[@K]: the lookahead on the real future's noise; "
                     "GROUND TRUTH, optimistic bound"),
     "learned": (lambda p, dt: _learned(p, dt), "path of a saved SB3 model (.zip), or a shipped model's name; "
