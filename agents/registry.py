@@ -140,6 +140,9 @@ def make_policy(spec: str, dt_s: float = 0.2):
         raise PolicySpecError(f"policy={spec!r}: unknown name {name!r}; known: {', '.join(POLICIES)}")
     if name in ("learned", "rllib") and not param:
         raise PolicySpecError(f"policy={spec!r}: {name!r} needs a model path, e.g. learned:model.zip")
+    if name == "rollout" and "@" not in param:
+        raise PolicySpecError(f"policy={spec!r}: rollout needs a base scheduler: rollout:H@BASE, "
+                              "e.g. rollout:60@per_anchor_drift:0.2")
     try:
         return POLICIES[name][0](param or None, dt_s)
     except (TypeError, ValueError) as err:

@@ -58,13 +58,13 @@ def name_of(dim: int, n: int, motion: str, nlos) -> str:
 def run_config(dim: int, n: int, motion: str, nlos, episodes: int, steps: int) -> tuple[np.ndarray, np.ndarray]:
     """NEES and mean squared anchor error (m^2) of every ok, unambiguous later round of
     ``episodes`` episodes."""
-    import uwb_env.team_state as system  # the later rounds' solve (both envs)
+    import uwb_env.team_state as team_state  # the later rounds' solve (both envs)
     from uwb_env import parallel_env
     from uwb_env.localization.bounds import gauge_nees
 
     rounds = []
     current = {}
-    solve, batched = system.calibrate_anchors, system.later_calibrations
+    solve, batched = team_state.calibrate_anchors, team_state.later_calibrations
 
     def recording_solve(*args, **kwargs):
         result = solve(*args, **kwargs)
@@ -82,7 +82,7 @@ def run_config(dim: int, n: int, motion: str, nlos, episodes: int, steps: int) -
     sim = {"dim": dim, "n_anchors": n, "anchor_motion": {"model": motion}}
     if nlos is not None:
         sim["ranging"] = {"nlos_probability": nlos, "dropout_probability": 0.0}
-    system.calibrate_anchors, system.later_calibrations = recording_solve, hand_back_all
+    team_state.calibrate_anchors, team_state.later_calibrations = recording_solve, hand_back_all
     try:
         for seed in range(SEED_BASE, SEED_BASE + episodes):
             env = parallel_env(sim=sim, max_cycles=steps)
@@ -92,7 +92,7 @@ def run_config(dim: int, n: int, motion: str, nlos, episodes: int, steps: int) -
                 env.step({a: int(t % 10 == 0) for a in env.agents})
             current.clear()
     finally:
-        system.calibrate_anchors, system.later_calibrations = solve, batched
+        team_state.calibrate_anchors, team_state.later_calibrations = solve, batched
     nees, sq = [], []
     for x, cov, refs, truth in rounds:
         value, err = gauge_nees(x, cov, refs, truth)

@@ -11,8 +11,11 @@ from uwb_env.cli import main as cli_main
 
 def test_registry_builds_every_baseline_and_rejects_bad_specs():
     for name in POLICIES:
-        if name not in ("learned", "rllib"):
+        if name not in ("learned", "rllib", "rollout"):  # these need a model or a base
             assert make_policy(name).act is not None
+    assert make_policy("rollout:20@never").act is not None
+    with pytest.raises(PolicySpecError, match="base scheduler"):
+        make_policy("rollout")
     assert make_policy("fixed:7").interval_steps == 7
     assert make_policy("fixed_s:1.0", dt_s=0.2).interval_steps == 5
     assert make_policy("oracle").uses_ground_truth

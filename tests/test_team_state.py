@@ -75,3 +75,48 @@ def test_apply_calibrations_scales_poor_fits_and_resets_the_clock():
     assert state.time_since_calibration_s[1].tolist() == pytest.approx([0.2] * 4)
     assert state.time_since_calibration_s[[0, 2]].max() == 0.0
     assert state.hist_count.tolist() == [0, 4, 0]
+
+
+def test_a_step_without_a_fix_is_not_a_measurement():
+    # A tag that misses its fix on an ordinary step (dropouts) keeps its last fix, unmoved; the
+    # next measured fix's velocity is over the time since the last measured one (a review
+    # found the predicted-fix correction applied to such steps: 3.5 m/s instead of 1.0 here).
+    state = TeamState.new(1, 4, 1, 2, window=10)
+    none, stats, ok = np.zeros(1), np.zeros((1, 4)), np.ones(1, dtype=bool)
+
+    def record(position, rms):
+        state.record_tag_fixes(slice(None), np.array([[position]], dtype=float), np.array([[rms]]), none, stats, ok,
+                               0.2)
+
+    record([0.0, 0.0], 0.1)
+    record([1.0, 0.0], 0.1)
+    np.testing.assert_allclose(state.tag_velocity[0, 0], [5.0, 0.0])
+    record([np.nan, np.nan], np.nan)
+    np.testing.assert_allclose(state.tag_fix[0, 0], [1.0, 0.0])
+    assert state.tag_fix_age_s[0, 0] == pytest.approx(0.2)
+    state.hold_tags(slice(None), 0.2, predict=True)  # then a round holds it, moved on at 5 m/s
+    np.testing.assert_allclose(state.tag_fix[0, 0], [2.0, 0.0])
+    record([1.8, 0.0], 0.1)
+    np.testing.assert_allclose(state.tag_velocity[0, 0], [(1.8 - 1.0) / 0.6, 0.0])
+    np.testing.assert_allclose(state.tag_measured[0, 0], [1.8, 0.0])
+
+
+def test_a_first_calibration_that_did_not_converge_still_sets_frame_and_estimates(monkeypatch):
+    # The 3D known-heights fallback can end not_converged; the frame is set from its solution, so
+    # the solution must be applied with it (the refactor had skipped it: estimates left in world
+    # coordinates under a rotated frame, 2.6 m fixed-frame error at reset). The verdict is reported.
+    import dataclasses
+
+    from uwb_env import parallel_env
+
+    original = LocalizationSystem._first_calibration
+
+    def not_converged(self):
+        return dataclasses.replace(original(self), status="not_converged", message="forced")
+
+    monkeypatch.setattr(LocalizationSystem, "_first_calibration", not_converged)
+    env = parallel_env(sim={"dim": 3, "n_anchors": 5})
+    _, infos = env.reset(seed=0)
+    info = infos["anchor_0"]
+    assert env.system.calibration_count == 1 and info["calibration_fit"] == 2
+    assert info["mean_anchor_error_fixed_frame_m"] < 0.5

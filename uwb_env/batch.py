@@ -275,7 +275,7 @@ class BatchedSystem:
                            solver.tag_restart_residual_m)
         st.tag_status[rows] = step.status
         st.record_tag_fixes(rows, step.positions, step.rms_m, step.tag_residual_m, step.anchor_residual_m,
-                            step.any_fix, self.dt_s, self.config.tag_fallback == "predict")
+                            step.any_fix, self.dt_s)
 
     # -- observations and metrics --------------------------------------------------------------------
     def features(self) -> np.ndarray:

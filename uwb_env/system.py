@@ -133,7 +133,9 @@ class LocalizationSystem:
         odometry_since_mid = (self.world.anchors_est - path.midpoint_estimates()) @ rot.T
         solutions = RoundSolutions(1, n, dim)
         solutions.put_result(0, result)
-        self._apply_solutions(solutions, odometry_since_mid, path.midpoint_drift())
+        # the frame was just set from this solution: it is applied whatever its verdict (a
+        # not-converged 3D known-heights solve is still the frame's; the verdict is reported)
+        self._apply_solutions(solutions, odometry_since_mid, path.midpoint_drift(), always=True)
         self._fix_tags()
 
     # views of the state's row (properties, not attributes bound at reset: a deepcopy or pickle
@@ -144,6 +146,7 @@ class LocalizationSystem:
     anchor_cov = property(lambda self: self.state.anchor_cov[0])
     tag_fix = property(lambda self: self.state.tag_fix[0])
     tag_velocity = property(lambda self: self.state.tag_velocity[0])
+    tag_measured = property(lambda self: self.state.tag_measured[0])
     tag_fix_age_s = property(lambda self: self.state.tag_fix_age_s[0])
     tag_status = property(lambda self: self.state.tag_status[0], doc="multilateration.TAG_STATUS_NAMES per tag")
 
@@ -314,16 +317,18 @@ class LocalizationSystem:
                                        est_mid[None], prior_std[None], self.config.solver, self.pair_range_std_m)
         return self._apply_solutions(solutions, self.world.anchors_est - est_mid, path.midpoint_drift())
 
-    def _apply_solutions(self, solutions: RoundSolutions, since_mid: np.ndarray, drift_at_mid: dict) -> str | None:
+    def _apply_solutions(self, solutions: RoundSolutions, since_mid: np.ndarray, drift_at_mid: dict,
+                         always: bool = False) -> str | None:
         """Record the round's verdict and apply its solution (``TeamState.apply_calibrations``);
-        the failure's message where there is none to apply (odometry kept)."""
+        the failure's message where there is none to apply (odometry kept). ``always``: apply a
+        not-converged solution too (the first calibration, which has set the frame)."""
         fit = int(solutions.fit[0])
         if fit == FIT_ERROR:  # e.g. dropouts disconnected the graph
             return solutions.message[0]
         self.calibration_fit = fit
         self.calibration_ambiguous = bool(solutions.ambiguous[0])
         self.calibration_chi2_per_dof = float(solutions.chi2_per_dof[0])
-        if not solutions.applicable[0]:  # no solution to speak of: keep odometry, say why
+        if not (always or solutions.applicable[0]):  # no solution to speak of: keep odometry, say why
             return solutions.message[0]
         self.state.apply_calibrations(slice(None), self.world.anchors_est[None], solutions, slice(None),
                                       since_mid[None])
@@ -418,8 +423,7 @@ class LocalizationSystem:
             positions, rms = positions[None], rms[None]
         # the fixes, and the residual statistics: what a deployed system can see that its
         # anchors went stale (the batched env's bookkeeping, for a batch of one)
-        st.record_tag_fixes(slice(None), positions, rms, *residuals, world.dt_s,
-                            self.config.tag_fallback == "predict")
+        st.record_tag_fixes(slice(None), positions, rms, *residuals, world.dt_s)
 
     def _fix_tags_3d(self, anchors, ranges, pred_var, solver) -> tuple:
         """3D tags: the general solver from the last fixes (restarting stuck ones), then the

@@ -144,9 +144,10 @@ class TeamState:
     steps_since_calibration: np.ndarray  # (B, N)
     calibration_var_m2: np.ndarray  # (B, N) trace of each anchor's calibration covariance
     anchor_cov: np.ndarray  # (B, N, dim, dim)
-    tag_fix: np.ndarray  # (B, M, dim), NaN: no fix yet
+    tag_fix: np.ndarray  # (B, M, dim), NaN: no fix yet (with tag_fallback="predict", moved on while held)
+    tag_measured: np.ndarray  # (B, M, dim) each tag's last measured fix
     tag_velocity: np.ndarray  # (B, M, dim)
-    tag_fix_age_s: np.ndarray  # (B, M) time since each tag's last fix
+    tag_fix_age_s: np.ndarray  # (B, M) time since each tag's last measured fix
     tag_status: np.ndarray  # (B, M) int8, multilateration.TAG_STATUS_NAMES
     tag_residual_hist: np.ndarray  # (B, W) ring buffer: the tags' mean fix residual per step
     anchor_residual_hist: np.ndarray  # (B, W, N) each anchor's mean range residual per step
@@ -157,7 +158,8 @@ class TeamState:
         b, n, m = n_teams, n_anchors, n_tags
         return cls(np.zeros(b, dtype=np.int64), np.zeros(b, dtype=np.int64), np.zeros(b), np.zeros((b, n)),
                    np.zeros((b, n)), np.zeros((b, n)), np.zeros((b, n, dim, dim)), np.full((b, m, dim), np.nan),
-                   np.zeros((b, m, dim)), np.zeros((b, m)), np.full((b, m), TAG_NO_FIX, dtype=np.int8),
+                   np.full((b, m, dim), np.nan), np.zeros((b, m, dim)), np.zeros((b, m)),
+                   np.full((b, m), TAG_NO_FIX, dtype=np.int8),
                    np.zeros((b, window)), np.zeros((b, window, n)), np.zeros(b, dtype=np.int64))
 
     def __post_init__(self):
@@ -204,19 +206,20 @@ class TeamState:
             self.tag_fix[rows] += self.tag_velocity[rows] * dt_s
 
     def record_tag_fixes(self, rows, positions: np.ndarray, rms_m: np.ndarray, tag_residual_m: np.ndarray,
-                         anchor_residual_m: np.ndarray, any_fix: np.ndarray, dt_s: float, predicted: bool) -> None:
+                         anchor_residual_m: np.ndarray, any_fix: np.ndarray, dt_s: float) -> None:
         """This step's tag fixes of teams ``rows`` (a slice or index array): positions (S, M, dim),
         their RMS residual (S, M) (NaN: no fix; the tag keeps its last one and ages), and the
         residual statistics of the fixes (``residual_statistics``: (S,), (S, N), (S,)).
 
         A tag's velocity is its displacement since its last *measured* fix over the time since
-        (with ``predicted``, held fixes were moved on at the old velocity meanwhile). The
-        residual ring buffer of a team without a usable fix this step carries its previous
-        entry. (One compiled pass: a step of the single env is a few microseconds of arithmetic.)"""
+        (held fixes, moved on at the old velocity with ``tag_fallback="predict"``, and steps
+        without a fix do not count as measurements). The residual ring buffer of a team without a
+        usable fix this step carries its previous entry. (One compiled pass: a step of the single
+        env is a few microseconds of arithmetic.)"""
         teams = self._team_index[rows]
-        _record_tag_fixes(self.tag_fix, self.tag_velocity, self.tag_fix_age_s, self.tag_residual_hist,
-                          self.anchor_residual_hist, self.hist_count, teams, positions, rms_m, tag_residual_m,
-                          anchor_residual_m, any_fix, float(dt_s), bool(predicted))
+        _record_tag_fixes(self.tag_fix, self.tag_measured, self.tag_velocity, self.tag_fix_age_s,
+                          self.tag_residual_hist, self.anchor_residual_hist, self.hist_count, teams, positions, rms_m,
+                          tag_residual_m, anchor_residual_m, any_fix, float(dt_s))
 
     def filled(self) -> np.ndarray:
         """(B,) valid slots of the residual ring buffers (from the start)."""
@@ -224,8 +227,8 @@ class TeamState:
 
 
 @njit(cache=True)
-def _record_tag_fixes(tag_fix, velocity, age, tag_hist, anchor_hist, hist_count, teams, positions, rms, tag_mean,
-                      anchor_mean, any_fix, dt, predicted):
+def _record_tag_fixes(tag_fix, measured, velocity, age, tag_hist, anchor_hist, hist_count, teams, positions, rms,
+                      tag_mean, anchor_mean, any_fix, dt):
     """:meth:`TeamState.record_tag_fixes` for the teams ``teams`` (S,); ``positions`` etc. row s
     belongs to team ``teams[s]``."""
     dim = tag_fix.shape[2]
@@ -239,13 +242,13 @@ def _record_tag_fixes(tag_fix, velocity, age, tag_hist, anchor_hist, hist_count,
                 continue
             had = True
             for d in range(dim):
-                had = had and np.isfinite(tag_fix[b, m, d])
+                had = had and np.isfinite(measured[b, m, d])
             elapsed = max(a + dt, dt)
             for d in range(dim):
                 if had:
-                    last = tag_fix[b, m, d] - velocity[b, m, d] * a if predicted else tag_fix[b, m, d]
-                    velocity[b, m, d] = (positions[s, m, d] - last) / elapsed
+                    velocity[b, m, d] = (positions[s, m, d] - measured[b, m, d]) / elapsed
                 tag_fix[b, m, d] = positions[s, m, d]
+                measured[b, m, d] = positions[s, m, d]
             age[b, m] = 0.0
         slot = hist_count[b] % window
         prev = (slot - 1 + window) % window
