@@ -234,14 +234,16 @@ class BatchedSystem:
         self.state.apply_calibrations(ks, self.anchors_est, solutions, which, since_mid)
         self.odometry.restart_drift(self._robots_of(ks), since=drift_mid)
 
-    # -- views of the state -------------------------------------------------------------------------
-    @property
-    def calibration_count(self) -> np.ndarray:
-        return self.state.calibration_count
-
-    @property
-    def tag_fix(self) -> np.ndarray:
-        return self.state.tag_fix
+    # -- views of the state (uwb_env.team_state.TeamState: (B, ...) arrays, as before it existed) -----
+    calibration_count = property(lambda self: self.state.calibration_count)
+    calibration_var_m2 = property(lambda self: self.state.calibration_var_m2)
+    anchor_cov = property(lambda self: self.state.anchor_cov)
+    last_calibration_rms_m = property(lambda self: self.state.last_calibration_rms_m)
+    time_since_calibration_s = property(lambda self: self.state.time_since_calibration_s)
+    steps_since_calibration = property(lambda self: self.state.steps_since_calibration)
+    tag_fix = property(lambda self: self.state.tag_fix)
+    tag_velocity = property(lambda self: self.state.tag_velocity)
+    tag_status = property(lambda self: self.state.tag_status)
 
     # -- tags --------------------------------------------------------------------------------------
     def _robots_of(self, copies) -> np.ndarray:
