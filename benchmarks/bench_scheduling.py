@@ -318,6 +318,9 @@ def main() -> None:
 
     # The reference from above, last (it costs about as much as everything else together).
     default = per_scenario.get("default")
+    if default is not None and "lookahead" in default and (
+            default["lookahead"].get("planner") != planner_identity(lookahead_spec(a.lookahead, default))):
+        del default["lookahead"]  # stored by another planner (spec, parameters or revision): recomputed
     if default is not None and "lookahead" in default:  # reused: the learned side is the new model's
         la = default["lookahead"]
         n = la["n_seeds"]
@@ -339,7 +342,8 @@ def main() -> None:
         headroom = paired_relative_improvement(la_err[0], h_n, "iqm")
         # a gap the lookahead does not significantly open cannot be "closed" by a fraction
         gap = gap_closed_fraction(heur_n, learn_n, ref) if headroom.ci_low > 0 else float("nan")
-        default["lookahead"] = {"spec": spec, **describe(*la_err), "n_seeds": n, "errors_m": la_err[0].tolist(),
+        default["lookahead"] = {"spec": spec, "planner": planner_identity(spec), **describe(*la_err), "n_seeds": n,
+                                "errors_m": la_err[0].tolist(),
                                 "heuristic_iqm_m_same_seeds": heur_n, "learned_iqm_m_same_seeds": learn_n,
                                 "headroom": headroom.value, "headroom_ci": [headroom.ci_low, headroom.ci_high],
                                 "gap_closed_fraction": gap}
@@ -429,6 +433,15 @@ def lookahead_spec(option: str, default_row: dict) -> str:
         k = int(default_row["tuning"]["best_of_family"]["fixed"].partition(":")[2])
         return f"lookahead:{min(max(int(2.5 * k), 60), 300)}@{k}"
     return option
+
+
+def planner_identity(spec: str) -> dict:
+    """What identifies a reference planner's answers: its parameters and revision where it says
+    them (``RolloutPolicy.describe``), else its spec."""
+    from uwb_env.agents.registry import make_policy
+
+    policy = make_policy(spec)
+    return policy.describe() if hasattr(policy, "describe") else {"spec": spec}
 
 
 def plot_suite(per_scenario: dict, path: Path) -> None:

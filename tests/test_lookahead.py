@@ -134,6 +134,29 @@ def test_rollout_spec_takes_any_deployable_base():
             make_policy(bad)
     with pytest.raises(ValueError, match="deployable"):
         RolloutPolicy("oracle:0.3")
+    with pytest.raises(ValueError, match="action_mode"):  # per-anchor moves on a calibrate-only env
+        RolloutPolicy("per_anchor_drift:0.2").bind(UWBCalibrationParallelEnv(max_cycles=10))
+
+
+def test_rollout_simulates_waiting_when_the_base_would_ask_before_the_next_decision():
+    # At a decision the base (every 6 steps) is idle, but asks two steps later: "wait" (hold until
+    # the next decision) is then another policy and must be simulated (a review found it dropped
+    # whenever the base was idle at the decision step: about half of all decisions).
+    from uwb_env.agents.lookahead import RolloutPolicy
+
+    env = UWBCalibrationParallelEnv(max_cycles=60)
+    env.reset(seed=3)
+    for t in range(12):
+        env.step({a: int(t == 2) for a in env.agents})
+    planner = RolloutPolicy("fixed:6", horizon_steps=12, n_futures=3, decide_every_steps=4)
+    planner.reset(seed=1)
+    planner.bind(env)
+    planner.t = planner.base.t = 3  # the next act is a decision at step 4; the base asks at 6
+    planner.act({a: None for a in env.agents}, {})
+    assert set(planner.last_totals) == {"base", "team", "wait"}
+    assert planner.simulated_steps == 3 * 3 * 12
+    planner.reset(seed=1)
+    assert planner.simulated_steps == 0 and planner.last_totals == {}
 
 
 def test_rollout_planning_leaves_the_real_trajectory_untouched():
