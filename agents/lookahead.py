@@ -220,31 +220,27 @@ class RolloutPolicy(LookaheadPolicy):
             return {a: 0 for a in observations}
         if self.t % self.decide_every_steps:
             return base
-        move = self._decide(base, list(observations))
+        moves = {"base": base, "team": {a: self._team for a in observations}, "wait": {a: 0 for a in observations}}
+        move = self._decide(moves)
         if move == "wait":
             self._hold = self.decide_every_steps - 1
-        return {"base": base, "team": {a: self._team for a in observations},
-                "wait": {a: 0 for a in observations}}[move]
+        return moves[move]
 
-    def _decide(self, base: dict, agents: list) -> str:
-        env = self.env
+    def _decide(self, moves: dict) -> str:
+        """The move to take of ``moves`` (base, team, wait: their first actions)."""
+        env, base = self.env, moves["base"]
         seeds = self.rng.integers(0, 2**63, self.n_futures)
-        moves = {"base": (base, False), "team": ({a: self._team for a in agents}, False),
-                 "wait": ({a: 0 for a in agents}, True)}
-        totals, base_asked = {}, False
         runs = [self._simulate_move(env, base, False, s) for s in seeds]
-        totals["base"] = np.array([r[0] for r in runs])
+        totals = {"base": np.array([r[0] for r in runs])}
         base_asked = any(r[1] for r in runs)  # the base requested before the next decision somewhere
         for name in ("team", "wait"):
-            first, wait = moves[name]
-            if first == base and not (name == "wait" and base_asked):
+            if moves[name] == base and not (name == "wait" and base_asked):
                 continue  # the base's own branch in every future
-            totals[name] = np.array([self._simulate_move(env, first, wait, s)[0] for s in seeds])
+            totals[name] = np.array([self._simulate_move(env, moves[name], name == "wait", s)[0] for s in seeds])
         self.last_totals = totals
         best, self.last_gain = "base", 0.0
-        for name in ("team", "wait"):  # a one-sided paired t-test over the futures (common random numbers)
-            if name not in totals:
-                continue
+        # team, then wait: a one-sided paired t-test over the futures (common random numbers)
+        for name in [n for n in totals if n != "base"]:
             diff = totals[name] - totals["base"]
             gain = float(diff.mean())
             threshold = self._t_quantile * float(diff.std(ddof=1)) / np.sqrt(len(diff))

@@ -146,7 +146,6 @@ class LocalizationSystem:
     anchor_cov = property(lambda self: self.state.anchor_cov[0])
     tag_fix = property(lambda self: self.state.tag_fix[0])
     tag_velocity = property(lambda self: self.state.tag_velocity[0])
-    tag_measured = property(lambda self: self.state.tag_measured[0])
     tag_fix_age_s = property(lambda self: self.state.tag_fix_age_s[0])
     tag_status = property(lambda self: self.state.tag_status[0], doc="multilateration.TAG_STATUS_NAMES per tag")
 

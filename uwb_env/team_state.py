@@ -109,7 +109,6 @@ def solve_later_rounds(mean: np.ndarray, std: np.ndarray, count: np.ndarray, car
     3D team go to the full solver."""
     n_teams, n, dim = est_mid.shape
     out = RoundSolutions(n_teams, n, dim)
-    rest = np.arange(n_teams)
     if dim == 2:
         complete, pairs, dist, var = symmetric_arrays(mean, count, pair_range_std_m, carry_var_m2)
         rows = np.flatnonzero(complete)
@@ -119,8 +118,7 @@ def solve_later_rounds(mean: np.ndarray, std: np.ndarray, count: np.ndarray, car
             done = solved.status != STATUS_NONE
             if done.any():
                 out.put_solved(rows[done], solved.subset(done))
-            rest = np.flatnonzero(~out.compiled)
-    for row in rest:
+    for row in np.flatnonzero(~out.compiled):
         try:
             matrix = RangeMatrix(mean[row], std[row], count[row], None if carry_var_m2 is None else carry_var_m2[row])
             result = calibrate_anchors(matrix, dim=dim, prior=est_mid[row], gauge=solver.gauge, loss=solver.loss,
