@@ -50,10 +50,21 @@ def _learned(param: str, dt_s: float):
         except ValueError:
             raise ValueError(f"learned:{param}: the base threshold after '@' must be a number in metres, "
                              f"got {threshold!r}") from None
-    if "/" not in path and not path.endswith(".zip"):  # a shipped model's name
+    if "/" not in path and not path.endswith((".zip", ".npz")):  # a shipped model's name
         path = str(shipped_model(path))
     record = Path(path).with_name("run.json")
-    if record.is_file() and json.loads(record.read_text()).get("env") == "anchor_set":
+    run = json.loads(record.read_text()) if record.is_file() else {}
+    if run.get("env") == "distilled":  # training.train_distilled: the rule plus predicted departures
+        from uwb_env.agents.distilled import DistilledPolicy, parse_base
+
+        if not threshold:  # the rule it was distilled over
+            measure, value = parse_base(run["base"])
+        else:
+            value = float(threshold)
+        policy = DistilledPolicy.load(path, base_threshold_m=value, base_measure=measure)
+        policy.dt_s = dt_s
+        return policy
+    if run.get("env") == "anchor_set":
         from uwb_env.agents.anchor_set import AnchorSetPolicy
 
         kwargs = {"base_threshold_m": float(threshold), "base_measure": measure} if threshold else {}

@@ -185,7 +185,8 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true")
     p.add_argument("--models", nargs="+", default=[str(ROOT / f"runs/anchor_set/seed{i}") for i in range(3)],
-                   help="training outputs (training/train_anchor_set.py --out); each one's best/ is used")
+                   help="training outputs, one per training seed (training/train_anchor_set.py --out: each one's "
+                   "best/ is used; training/train_distilled.py --out: its model.npz)")
     p.add_argument("--scenarios", nargs="*", default=None, help="default: the whole suite")
     p.add_argument("--test-seeds", type=int, default=100)
     p.add_argument("--val-seeds", type=int, default=10)
@@ -224,9 +225,17 @@ def main() -> None:
     models = []
     for m in a.models:
         summary = json.loads((Path(m) / "summary.json").read_text())
-        models.append({"path": str(Path(m) / "best" / "model.zip"), "seed": summary["seed"],
+        # train_anchor_set keeps its checkpoint in best/model.zip; train_distilled names its file
+        path = Path(m) / summary.get("model", "best/model.zip")
+        record = path.with_name("run.json")
+        run = json.loads(record.read_text()) if record.is_file() else {}
+        models.append({"path": str(path), "seed": summary["seed"], "kind": run.get("env", "unknown"),
+                       "margin": run.get("margin"),
                        "val_return": summary["best_val_return"], "wall_s": summary["wall_s"],
-                       "steps": summary["steps"]})
+                       "steps": summary["steps"], "steps_unit": summary.get("steps_unit", "anchor decisions")})
+    kinds = sorted({m["kind"] for m in models})
+    if len(kinds) > 1:  # their validation scores are not on one scale (a return, a relative gain)
+        p.error(f"--models: one kind of model per run, got {kinds}")
     shipped = max(models, key=lambda m: m["val_return"])  # chosen on validation seeds
     learned_model = f"learned:{shipped['path']}"
     suite = load_suite()
@@ -240,6 +249,8 @@ def main() -> None:
     earlier_version = (json.loads(flat_path.read_text()).get("code_version", "unknown") if flat_path.exists()
                        else "unknown")
     digest = model_digest(shipped["path"])  # the same path may hold a retrained model
+    if shipped["margin"] is not None or shipped["kind"] == "distilled":  # its margin is part of the policy
+        digest += f"+margin={shipped['margin']}"
     if a.resume:  # scenarios finished by an interrupted run with the same settings
         per_scenario = {n: r for n, r in earlier.items() if n in names
                         and r.get("learned_spec", "").rpartition("@")[0] == learned_model
@@ -360,9 +371,15 @@ def main() -> None:
         "test_seeds_per_scenario": a.test_seeds, "validation_seeds_per_candidate": a.val_seeds,
         "shipped_model": str(Path(shipped["path"]).relative_to(ROOT)) if Path(shipped["path"]).is_relative_to(ROOT)
         else shipped["path"], "shipped_training_seed": shipped["seed"],
-        "n_training_seeds": len(models), "training_wall_s_per_seed": max(m["wall_s"] for m in models),
+        "learned_kind": shipped["kind"],
+        **{f"departure_margin_seed_{m['seed']}": m["margin"] for m in models if m["kind"] == "distilled"},
+        "n_training_seeds": len(models),
+        # None when a seed's wall clock is unknown (its data collected by an earlier, untimed run)
+        "training_wall_s_per_seed": (None if any(m["wall_s"] is None for m in models)
+                                     else max(m["wall_s"] for m in models)),
         **{f"training_wall_s_seed_{m['seed']}": m["wall_s"] for m in models},
         **{f"training_steps_seed_{m['seed']}": m["steps"] for m in models},
+        "training_steps_unit": shipped["steps_unit"],
         "worst_scenario": worst, "worst_scenario_improvement": improvements[worst],
         "scenarios_worse_than_best_heuristic_beyond_ci": ", ".join(worse_beyond_ci) or "none",
         "n_scenarios_worse_beyond_ci": len(worse_beyond_ci),
