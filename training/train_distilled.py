@@ -39,7 +39,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from uwb_env.agents.distilled import base_spec, parse_base
+from uwb_env.agents.distilled import (
+    TEAM_FEATURES,
+    DistilledPolicy,
+    GainModel,
+    base_spec,
+    parse_base,
+    team_features,
+)
 from uwb_env.training.hyperparams_io import load_block
 
 HERE = Path(__file__).resolve().parent
@@ -193,8 +200,6 @@ def _gains(totals: np.ndarray, base: np.ndarray) -> np.ndarray:
 def gain_table(files: list[Path], threshold_m: float, horizon_steps: int):
     """(features, gains (team, wait), episode index) over every recorded decision. A move the
     rollout did not simulate was the rule's own in every future: gain 0."""
-    from uwb_env.agents.distilled import team_features
-
     X, Y, E = [], [], []
     for i, f in enumerate(files):
         with np.load(f) as z:
@@ -237,7 +242,6 @@ def fit_gain_model(X: np.ndarray, Y: np.ndarray, episodes: np.ndarray, hp: dict,
                    decide_every_steps: int):
     """Least-squares MLP with early stopping on a fifth of the episodes -> (GainModel, record)."""
     import torch
-    from uwb_env.agents.distilled import GainModel
 
     ids = np.unique(episodes)
     if len(ids) < 2:
@@ -296,8 +300,6 @@ def fit_gain_model(X: np.ndarray, Y: np.ndarray, episodes: np.ndarray, hp: dict,
     # What the model's departures would gain on the held-out episodes, by margin: the rollout's
     # measured gain of the move it picks, summed per episode (first order: one decision at a time)
     pred = model.evaluate(X[val])
-    from uwb_env.agents.distilled import TEAM_FEATURES
-
     rule_team = X[val][:, TEAM_FEATURES.index("base_share_team")] == 1.0
     pred[rule_team, 0] = -np.inf  # as the policy: no "team" departure when the rule asks for one
     move = pred.argmax(1)
@@ -311,7 +313,6 @@ def fit_gain_model(X: np.ndarray, Y: np.ndarray, episodes: np.ndarray, hp: dict,
 
 
 def _validation_episode(job: tuple) -> tuple:
-    from uwb_env.agents.distilled import DistilledPolicy, GainModel
     from uwb_env.training.evaluate import run_policy_episode
 
     model_path, margin, base, scenario, seed, max_cycles = job
