@@ -117,3 +117,62 @@ def test_motion_kernel_steps_numpys_waypoint_distance():
         if t >= 115:
             seen.append(m.positions[25].copy())
     np.testing.assert_allclose(np.ravel(seen), RECORDED_ZERO_PAUSE, rtol=RTOL)
+
+
+def _numpy_recentred(since, now):
+    """The numpy re-centring the compiled ``_recentre`` replaced (``odometry._recentred`` at 4385f0e)."""
+    p_s = since["_net"]
+    d_a = now["_sum_a"] - since["_sum_a"]
+    d_b = now["_sum_b"] - since["_sum_b"]
+    d_c = now["_sum_c"] - since["_sum_c"]
+    cross = p_s.real * d_b.real + p_s.imag * d_b.imag
+    return {"_h0": since["heading_var_rad2"], "_dist": now["_dist"] - since["_dist"], "_net": now["_net"] - p_s,
+            "_sum_a": d_a, "_sum_b": d_b - d_a * p_s, "_sum_c": d_c - 2.0 * cross + d_a * (p_s.real**2 + p_s.imag**2)}
+
+
+def _numpy_variance(odo, acc):
+    cfg = odo.config
+    p, b = acc["_net"], acc["_sum_b"]
+    p2 = p.real * p.real + p.imag * p.imag
+    cross = p.real * b.real + p.imag * b.imag
+    white = 2 * cfg.noise_std_m_per_sqrt_m**2 * odo.expected_slip_gain2 * acc["_dist"]
+    heading = (cfg.scale_error_std**2 + acc["_h0"] + acc["_sum_a"]) * p2 - 2 * cross + acc["_sum_c"]
+    return white + np.maximum(heading, 0.0)
+
+
+def test_compiled_drift_between_snapshots_is_the_numpy_formula_to_the_last_bit():
+    # A round's carry variance and the re-centring after a calibration: the compiled loops give
+    # the numbers of the numpy code they replaced (same operations, same order), so episodes
+    # with calibrations keep their trajectories bit for bit.
+    rng = np.random.default_rng(3)
+    o = OdometryModel(OdometryConfig(slip_rate_per_s=0.5, scale_error_std=0.03))
+    o.reset(9, rng)
+    snaps = []
+    for _ in range(12):
+        o.estimated_displacement(rng.normal(0, 0.2, (9, 2)), np.abs(rng.normal(0, 0.3, 9)), 0.2, rng)
+        snaps.append(o.snapshot())
+    k_mid = 5
+    steps = np.arange(len(snaps))
+    series = o.drift_var_series(snaps, np.minimum(steps, k_mid), np.maximum(steps, k_mid))
+    for t, s in enumerate(snaps):
+        early, late = (s, snaps[k_mid]) if t <= k_mid else (snaps[k_mid], s)
+        np.testing.assert_array_equal(series[t], _numpy_variance(o, _numpy_recentred(early, late)))
+    assert np.all(series[steps != k_mid] > 0) and np.all(series[k_mid] == 0)
+    # the re-centring a calibration applies (restart_drift), on a subset of the robots
+    robots = np.array([1, 4, 8])
+    expected = _numpy_recentred({k: v[robots] for k, v in snaps[3].items()}, o.snapshot(robots))
+    o.restart_drift(robots, since={k: v[robots] for k, v in snaps[3].items()})
+    for name, value in expected.items():
+        np.testing.assert_array_equal(getattr(o, name)[robots], value, err_msg=name)
+
+
+def test_compiled_path_interpolation_is_numpys():
+    from uwb_env.sim._round_path_kernel import interpolate
+
+    rng = np.random.default_rng(4)
+    times = np.cumsum(rng.uniform(0.05, 0.3, 7))
+    stack = rng.normal(size=(7, 10))
+    t = np.concatenate([rng.uniform(times[0] - 0.5, times[-1] + 0.5, 40), times])  # outside, inside, on the boundaries
+    s = np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2)
+    w = ((t - times[s]) / np.maximum(times[s + 1] - times[s], 1e-12))[:, None]
+    np.testing.assert_array_equal(interpolate(times, stack, t), (1.0 - w) * stack[s] + w * stack[s + 1])

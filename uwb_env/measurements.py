@@ -191,8 +191,13 @@ def combine_directions(mean_a, mean_b, info_a, info_b, carry_a=None, carry_b=Non
     mean = (info_a * mean_a + info_b * mean_b) / total
     var = 1.0 / total
     if carry_a is not None:
-        var = var + (info_a * np.nan_to_num(carry_a) + info_b * np.nan_to_num(carry_b)) / total
+        var = var + (info_a * _nan_to_zero(carry_a) + info_b * _nan_to_zero(carry_b)) / total
     return mean, var
+
+
+def _nan_to_zero(x: np.ndarray) -> np.ndarray:
+    # np.nan_to_num's NaN -> 0 in one call (it costs ~10 us a call on a handful of pairs)
+    return np.where(np.isnan(x), 0.0, x)
 
 
 def pool_rounds(a: RangeMatrix, b: RangeMatrix) -> RangeMatrix:

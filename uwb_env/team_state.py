@@ -76,7 +76,8 @@ class RoundSolutions:
         self.fit[rows] = np.where(solved.status == STATUS_POOR, FIT_POOR, FIT_OK)
         self.chi2[rows] = solved.chi2
         self.dof[rows] = solved.dof
-        self.rms_m[rows] = np.sqrt(np.mean(solved.residuals_m**2, axis=1))
+        r2 = solved.residuals_m**2  # np.mean's sum and division without its ~10 us of overhead
+        self.rms_m[rows] = np.sqrt(np.add.reduce(r2, axis=1) / r2.shape[1])
         self.ambiguous[rows] = False
         self.compiled[rows] = True
 

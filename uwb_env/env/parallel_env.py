@@ -305,8 +305,8 @@ class UWBCalibrationParallelEnv(ParallelEnv, EzPickle):
             # per tag: 0 ok, 1 ambiguous (its mirror fits the ranges as well), 2 no fix, 3 poor
             # fit (the ranges reject the fix at the fit test's level; the position is kept)
             "tag_status": s.tag_status.copy(),
-            "n_tags_ambiguous": int((s.tag_status == 1).sum()),
-            "n_tags_poor_fit": int((s.tag_status == 3).sum()),
+            "n_tags_ambiguous": int(np.count_nonzero(s.tag_status == 1)),
+            "n_tags_poor_fit": int(np.count_nonzero(s.tag_status == 3)),
             "anchor_round_count": s.anchor_round_count,
             # flat float keys, zero at reset (no nested dicts: TorchRL and vector envs stack infos)
             **{f"reward_{k}": float(v) for k, v in {**_ZERO_TERMS, **terms}.items()},

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from uwb_env.config import OdometryConfig
-from uwb_env.sim._odometry_kernel import drift_step, drift_variance
+from uwb_env.sim._odometry_kernel import drift_step, drift_variance, drift_variance_between, recentre
 from uwb_env.sim.ranging import upper_tail_threshold
 
 
@@ -154,34 +154,42 @@ class OdometryModel:
         cfg = self.config
         if self._uniform:
             return self._steps[robots] * dim * cfg.uniform_error_m**2 / 3.0
-        if isinstance(robots, slice) and robots == slice(None):  # every robot (the hot path): one compiled loop
-            return drift_variance(self._net, self._sum_b, self._dist, self._h0, self._sum_a, self._sum_c,
-                                  2 * cfg.noise_std_m_per_sqrt_m**2 * self.expected_slip_gain2,
-                                  cfg.scale_error_std**2)
-        return self._variance({name: getattr(self, name)[robots] for name in ("_h0",) + self._ACCUMULATORS[1:]})
+        if isinstance(robots, slice) and robots == slice(None):
+            acc = {"_h0": self._h0, **{name: getattr(self, name) for name in self._ACCUMULATORS[1:]}}
+        else:
+            acc = {name: np.atleast_1d(getattr(self, name)[robots]) for name in ("_h0",) + self._ACCUMULATORS[1:]}
+        out = drift_variance(acc["_net"], acc["_sum_b"], acc["_dist"], acc["_h0"], acc["_sum_a"], acc["_sum_c"],
+                             *self._variance_constants())
+        return out if np.ndim(self._h0[robots]) else out[0]
 
-    def _variance(self, acc: dict) -> np.ndarray:
-        """The ``distance`` model's drift variance from accumulators since a restart (``_h0``:
-        the heading variance at the restart); :meth:`expected_drift_var_m2`'s formula."""
+    def _variance_constants(self) -> tuple[float, float]:
+        """The distance model's white-noise variance per metre and the scale error's variance."""
         cfg = self.config
-        p, b = acc["_net"], acc["_sum_b"]
-        p2 = p.real * p.real + p.imag * p.imag
-        cross = p.real * b.real + p.imag * b.imag
-        white = 2 * cfg.noise_std_m_per_sqrt_m**2 * self.expected_slip_gain2 * acc["_dist"]
-        carried = cfg.scale_error_std**2 + acc["_h0"] + acc["_sum_a"]
-        heading = carried * p2 - 2 * cross + acc["_sum_c"]
-        return white + np.maximum(heading, 0.0)
+        return 2 * cfg.noise_std_m_per_sqrt_m**2 * self.expected_slip_gain2, cfg.scale_error_std**2
 
     def drift_var_between(self, earlier: dict, later: dict, dim: int = 2) -> np.ndarray:
         """Expected variance (summed over axes) of the drift the robots of two :meth:`snapshot`
         accrued between them: :meth:`expected_drift_var_m2` as if the drift had restarted at
         ``earlier`` (the same re-centring as :meth:`restart_drift`), evaluated at ``later``.
         Both snapshots must lie after the robots' last restart (e.g. within one round)."""
-        if np.any(earlier["restarts"] != later["restarts"]):
+        return self.drift_var_series([earlier, later], [0], [1], dim)[0]
+
+    def drift_var_series(self, snapshots: list[dict], earlier, later, dim: int = 2) -> np.ndarray:
+        """:meth:`drift_var_between` of ``snapshots[earlier[q]]`` and ``snapshots[later[q]]`` for
+        every q at once (one compiled loop): (Q, *robots' shape)."""
+        names = ("restarts", "_steps") if self._uniform else ("restarts", "heading_var_rad2", "_net", "_sum_a",
+                                                              "_sum_b", "_sum_c", "_dist")
+        stack = {name: np.array([s[name] for s in snapshots]) for name in names}
+        earlier, later = np.asarray(earlier, dtype=np.int64), np.asarray(later, dtype=np.int64)
+        if np.any(stack["restarts"][earlier] != stack["restarts"][later]):
             raise ValueError("drift_var_between: a restart_drift lies between the two snapshots")
         if self._uniform:
-            return (later["_steps"] - earlier["_steps"]) * dim * self.config.uniform_error_m**2 / 3.0
-        return self._variance(_recentred(earlier, later))
+            return (stack["_steps"][later] - stack["_steps"][earlier]) * dim * self.config.uniform_error_m**2 / 3.0
+        shape = stack["_net"].shape
+        flat = {name: v.reshape(shape[0], -1) for name, v in stack.items()}
+        out = drift_variance_between(flat["heading_var_rad2"], flat["_net"], flat["_sum_a"], flat["_sum_b"],
+                                     flat["_sum_c"], flat["_dist"], earlier, later, *self._variance_constants())
+        return out.reshape((len(earlier),) + shape[1:])
 
     @property
     def expected_slip_gain2(self) -> float:
@@ -197,13 +205,11 @@ class OdometryModel:
 def _recentred(since: dict, now: dict) -> dict:
     """The drift accumulators of :meth:`OdometryModel.snapshot` ``now`` as if the drift had
     restarted at the snapshot ``since`` (the same robots): P -> P - P_s, B -> (B - B_s) -
-    (A - A_s) P_s, C -> (C - C_s) - 2 Re(conj(P_s) (B - B_s)) + (A - A_s) |P_s|^2, the heading
-    variance at ``since`` as ``_h0``."""
-    p_s = since["_net"]
-    d_a = now["_sum_a"] - since["_sum_a"]
-    d_b = now["_sum_b"] - since["_sum_b"]
-    d_c = now["_sum_c"] - since["_sum_c"]
-    cross = p_s.real * d_b.real + p_s.imag * d_b.imag
-    return {"_h0": since["heading_var_rad2"], "_dist": now["_dist"] - since["_dist"],
-            "_steps": now["_steps"] - since["_steps"], "_net": now["_net"] - p_s, "_sum_a": d_a,
-            "_sum_b": d_b - d_a * p_s, "_sum_c": d_c - 2.0 * cross + d_a * (p_s.real**2 + p_s.imag**2)}
+    (A - A_s) P_s, C -> (C - C_s) - 2 Re(conj(P_s) (B - B_s)) + (A - A_s) |P_s|^2
+    (``_odometry_kernel._recentre``), the heading variance at ``since`` as ``_h0``."""
+    shape = np.shape(now["_net"])
+    flat = [np.ascontiguousarray(np.reshape(d[name], -1)) for d in (since, now)
+            for name in ("_net", "_sum_a", "_sum_b", "_sum_c", "_dist")]
+    net, sum_a, sum_b, sum_c, dist = (v.reshape(shape) for v in recentre(*flat))
+    return {"_h0": since["heading_var_rad2"], "_dist": dist, "_steps": now["_steps"] - since["_steps"],
+            "_net": net, "_sum_a": sum_a, "_sum_b": sum_b, "_sum_c": sum_c}

@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from uwb_env.sim._round_path_kernel import interpolate
+
 
 class RoundPath:
     """Estimates at each step boundary since ``time_s`` (the round's start).
@@ -51,16 +53,15 @@ class RoundPath:
     def midpoint_time_s(self) -> float:
         return 0.5 * (self.times_s[0] + self.times_s[-1])
 
-    def _at(self, series: list[np.ndarray], t: np.ndarray) -> np.ndarray:
-        """series linearly interpolated at times t (any shape) -> (*t.shape, ...)."""
-        times = np.asarray(self.times_s)
-        if len(times) == 1:
+    def _at(self, series: list[np.ndarray] | np.ndarray, t: np.ndarray) -> np.ndarray:
+        """series (one array per boundary, or stacked) linearly interpolated at times t (any
+        shape) -> (*t.shape, ...)."""
+        if len(self.times_s) == 1:
             return np.broadcast_to(series[0], (*np.shape(t), *series[0].shape)).copy()
-        s = np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2)
-        w = (np.asarray(t) - times[s]) / np.maximum(times[s + 1] - times[s], 1e-12)
-        stack = np.stack(series)
-        w = w.reshape(w.shape + (1,) * (stack.ndim - 1))
-        return (1.0 - w) * stack[s] + w * stack[s + 1]
+        stack = series if isinstance(series, np.ndarray) else np.array(series)
+        out = interpolate(np.asarray(self.times_s), stack.reshape(len(stack), -1),
+                          np.ascontiguousarray(t, dtype=float).reshape(-1))
+        return out.reshape(np.shape(t) + stack.shape[1:])
 
     def midpoint_estimates(self) -> np.ndarray:
         """(..., N, dim) the estimates at the round's midpoint (a new array per call)."""
@@ -112,14 +113,11 @@ class RoundPath:
         shape = self.estimates[0].shape  # (..., N, dim)
         n, dim = shape[-2], shape[-1]
         k_mid = int(np.argmin(np.abs(np.asarray(self.times_s) - self.midpoint_time_s)))
-        mid = self.drifts[k_mid]
-        # every boundary at once (elementwise: the same numbers as one call per boundary):
-        # from the boundary to the midpoint before it, from the midpoint to it after
-        stack = {name: np.stack([d[name] for d in self.drifts]) for name in mid}
-        before = (np.arange(len(self.drifts)) <= k_mid).reshape((-1,) + (1,) * np.ndim(mid["_net"]))
-        earlier = {name: np.where(before, v, mid[name]) for name, v in stack.items()}
-        later = {name: np.where(before, mid[name], v) for name, v in stack.items()}
-        var = list(odometry.drift_var_between(earlier, later, dim=dim).reshape((len(self.drifts),) + shape[:-1]))
+        # every boundary at once: from the boundary to the midpoint before it, from the
+        # midpoint to it after
+        steps = np.arange(len(self.drifts))
+        var = odometry.drift_var_series(self.drifts, np.minimum(steps, k_mid), np.maximum(steps, k_mid), dim=dim)
+        var = var.reshape((len(self.drifts),) + shape[:-1])
         i, j = np.nonzero(~np.eye(n, dtype=bool))
         at_pair = self._at(var, pair_times_s[i, j])  # (P, ..., N)
         p = np.arange(len(i))
