@@ -292,11 +292,13 @@ def calibrate_anchors(
         # and every start above can end in such a minimum with a fit the noise explains (8
         # anchors on a 40 m x 4 m strip, K = 5: 10 of 3,000 rounds came back 0.03-2.2 in
         # chi-square above the least-squares optimum, 7 of them called unambiguous; 1 after
-        # this search, which needed two anchors flipped at once). Solve from each single flip,
-        # again from a flip that wins: a lower cost wins, a tie is ambiguous.
+        # single flips, which needed two anchors flipped at once: up to 8 anchors every pair is
+        # flipped too). Solve from each flip, again from a flip that wins: a lower cost wins, a
+        # tie is ambiguous.
         for _ in range(2):
             before = best
-            best, tie = problem.add_starts(refs, candidates, _flip_starts(best.x), prior, best, ambiguous)
+            best, tie = problem.add_starts(refs, candidates, _flip_starts(best.x, pairs_up_to_n=FLIP_PAIRS_MAX_N),
+                                           prior, best, ambiguous)
             ambiguous = ambiguous or tie
             if best is before:
                 break
@@ -768,10 +770,13 @@ def _reflect_anchor(x: np.ndarray, k: int) -> np.ndarray | None:
 # A 2D shape whose second principal variance is below this fraction of the first is thin (the
 # batched first calibration's ``min_aspect``: it hands such teams to this solver).
 THIN_ASPECT = 0.1
-# The flip search costs 4N solves (a thin first calibration: 2.6 ms at N = 8, 8 ms at 16, 52 ms
-# at 32, 0.55 s at 64); the starts alone missed no least-squares optimum on thin strips of 16
-# and 32 anchors (0 of 1,000 rounds each in bench_localization), 3 of 500 at 8.
+# The single flips cost up to 4N solves (a thin first calibration: 2.6 ms at N = 8, 8 ms at 16,
+# 52 ms at 32, 0.55 s at 64); the starts alone missed no least-squares optimum on thin strips
+# of 16 and 32 anchors (0 of 1,000 rounds each in bench_localization), 3 of 500 at 8.
 FLIP_SEARCH_MAX_N = 16
+# ... and flips of every two anchors across the axis (n (n - 1) / 2 more solves; 6 ms in all
+# at N = 8) up to this many
+FLIP_PAIRS_MAX_N = 8
 
 
 def _thin(x: np.ndarray) -> bool:
@@ -779,20 +784,29 @@ def _thin(x: np.ndarray) -> bool:
     return bool(s[1] ** 2 < THIN_ASPECT * s[0] ** 2)
 
 
-def _flip_starts(x: np.ndarray) -> list[tuple[str, np.ndarray]]:
+def _flip_starts(x: np.ndarray, pairs_up_to_n: int = 0) -> list[tuple[str, np.ndarray]]:
     """``x`` with one anchor mirrored, for every anchor: across the line through its two nearest
-    others (``_reflect_anchor``) and across the shape's principal axis (2D)."""
+    others (``_reflect_anchor``) and across the shape's principal axis (2D); with at most
+    ``pairs_up_to_n`` anchors also every two anchors mirrored across the axis together."""
+    n = len(x)
     centre = x.mean(0)
     axis = np.linalg.svd(x - centre)[2][0]
     normal = np.array([-axis[1], axis[0]])
+    mirrored = x - 2.0 * ((x - centre) @ normal)[:, None] * normal
     starts = []
-    for k in range(len(x)):
+    for k in range(n):
         near = _reflect_anchor(x, k)
         if near is not None:
             starts.append(("flip-near", near))
         across = x.copy()
-        across[k] = x[k] - 2.0 * ((x[k] - centre) @ normal) * normal
+        across[k] = mirrored[k]
         starts.append(("flip-axis", across))
+    if n <= pairs_up_to_n:
+        for k in range(n):
+            for j in range(k + 1, n):
+                both = x.copy()
+                both[[k, j]] = mirrored[[k, j]]
+                starts.append(("flip-axis-pair", both))
     return starts
 
 
