@@ -29,7 +29,10 @@ Each pooled ratio over a case's layouts comes with a 95 % bootstrap interval ove
 (the paper frame's x axis rests on them) carry most of the summed bound, so another 500-round
 draw can move the ratio far. Beside it, the shape alone (``rmse_over_crlb_aligned_*``): each
 round's error after the best rigid alignment (no mirror) over the gauge-free bound (the
-pseudo-inverse of the Fisher information), which no frame choice inflates.
+pseudo-inverse of the Fisher information), which no frame choice inflates; the same with a
+mirror allowed (``rmse_over_crlb_shape_up_to_mirror_*``) and the rounds at >= 10x whose shape
+is within 3x that bound of the truth's mirror image (``rounds_over_10x_right_shape_mirrored_frame_*``:
+the paper frame's handedness rule, "the anchors' y sum positive", decided by noise).
 
 Speed: median ms per least-squares solve from the same start (trilateration) with the same
 weights, ours (``solve_pair_ranges``: the solve a calibration runs per start) vs
@@ -152,7 +155,7 @@ def accuracy_case(kind, n, k, trials, rng, missing=0.0, nlos=0.0, loss="linear",
     minimum) and the rounds at >= 10x that fit at least as well as it (the least-squares
     optimum itself is that far off: no solver of this cost can do better)."""
     sq, tr, ratios, wrong_ok, fails, certain = [], [], [], 0, 0, []
-    missed, over_at_optimum, sq_aligned, tr_free = 0, 0, [], []
+    missed, over_at_optimum, sq_aligned, sq_mirror, tr_free, right_shape = 0, 0, [], [], [], 0
     while len(ratios) < trials:
         x = layout(kind, n, rng)
         mask, kept = drop_pairs(n, missing, rng) if missing else (None, None)
@@ -171,7 +174,11 @@ def accuracy_case(kind, n, k, trials, rng, missing=0.0, nlos=0.0, loss="linear",
                 # the same round without the paper frame: the shape's error after the best rigid
                 # alignment (no mirror) over the gauge-free bound (pseudo-inverse of the FIM)
                 sq_aligned.append(float((aligned_errors(res.positions, truth, allow_reflection=False) ** 2).sum()))
+                # ... and with a mirror allowed: a round whose frame came out mirrored (the paper
+                # frame's handedness rule within noise of flipping) but whose shape is right
+                sq_mirror.append(float((aligned_errors(res.positions, truth) ** 2).sum()))
                 tr_free.append(float(np.trace(crlb_anchors(x, SIGMA**2 / (2 * k), kept, gauge="free"))))
+                right_shape += bool(np.sqrt(e2 / t) >= 10 and sq_mirror[-1] < 9.0 * tr_free[-1])
                 pairs, dist, var = RangeMatrix(m.mean_m, np.full(m.std_m.shape, SIGMA), m.count).symmetric()
                 ours, best = weighted_chi2(res.positions, pairs, dist, var), truth_basin_chi2(pairs, dist, var, truth)
                 above = ours > best + 1e-6 * max(best, 1.0)
@@ -195,6 +202,8 @@ def accuracy_case(kind, n, k, trials, rng, missing=0.0, nlos=0.0, loss="linear",
         extra["ci"] = pooled_ratio_ci(np.array(sq)[finite], np.array(tr)[finite])
         extra["unambiguous_ci"] = pooled_ratio_ci(np.array(sq)[sure], np.array(tr)[sure])
         extra["aligned"] = float(np.sqrt(np.sum(sq_aligned) / np.sum(tr_free))) if sq_aligned else float("nan")
+        extra["mirror_aligned"] = float(np.sqrt(np.sum(sq_mirror) / np.sum(tr_free))) if sq_mirror else float("nan")
+        extra["over_10x_right_shape"] = right_shape
         extra["ambiguous_rate"] = float(1.0 - np.mean(certain))
         extra["over_10x_unambiguous"] = int(np.sum((ratios >= 10) & sure))
         extra["missed_global_minimum"] = missed
@@ -338,7 +347,7 @@ def main(argv=None) -> dict:
     start = time.perf_counter()
 
     rows = []
-    worst_ratio, worst_over, worst_sure, over_sure, missed_total = 0.0, 0, 0.0, 0, 0
+    worst_ratio, worst_over, worst_sure, over_sure, missed_total, right_shape_total = 0.0, 0, 0.0, 0, 0, 0
     for kind in ("random", "paper", "thin"):
         for n in (3, 4, 8, 16, 32):
             for k in (5, 50):
@@ -353,6 +362,9 @@ def main(argv=None) -> dict:
                 (fig[f"rmse_over_crlb_unambiguous_{key}_ci95_low"],
                  fig[f"rmse_over_crlb_unambiguous_{key}_ci95_high"]) = extra["unambiguous_ci"]
                 fig[f"rmse_over_crlb_aligned_{key}"] = extra["aligned"]
+                fig[f"rmse_over_crlb_shape_up_to_mirror_{key}"] = extra["mirror_aligned"]
+                fig[f"rounds_over_10x_right_shape_mirrored_frame_{key}"] = extra["over_10x_right_shape"]
+                right_shape_total += extra["over_10x_right_shape"]
                 fig[f"ambiguous_rate_{key}"] = extra["ambiguous_rate"]
                 fig[f"rounds_over_10x_unambiguous_{key}"] = extra["over_10x_unambiguous"]
                 fig[f"rounds_missed_global_minimum_{key}"] = extra["missed_global_minimum"]
@@ -366,7 +378,8 @@ def main(argv=None) -> dict:
                 rows.append([key, t, ratio, "[{:.2f}, {:.2f}]".format(*extra["ci"]), int(round(over * t)), wrong_ok,
                              fails, extra["unambiguous"], "[{:.2f}, {:.2f}]".format(*extra["unambiguous_ci"]),
                              extra["ambiguous_rate"], extra["over_10x_unambiguous"], extra["missed_global_minimum"],
-                             extra["over_10x_at_optimum"], extra["aligned"]])
+                             extra["over_10x_at_optimum"], extra["aligned"], extra["mirror_aligned"],
+                             extra["over_10x_right_shape"]])
     for frac, tag in ((0.2, "missing20"), (0.3, "missing30")):
         extra = {}
         ratio, over, wrong_ok, fails, _ = accuracy_case("random", 8, K, trials, rng, missing=frac, extra=extra)
@@ -380,21 +393,26 @@ def main(argv=None) -> dict:
         fig[f"rounds_over_10x_at_least_squares_optimum_{tag}_n8"] = extra["over_10x_at_optimum"]
         missed_total += extra["missed_global_minimum"]
         fig[f"rmse_over_crlb_aligned_{tag}_n8"] = extra["aligned"]
+        fig[f"rmse_over_crlb_shape_up_to_mirror_{tag}_n8"] = extra["mirror_aligned"]
+        fig[f"rounds_over_10x_right_shape_mirrored_frame_{tag}_n8"] = extra["over_10x_right_shape"]
+        right_shape_total += extra["over_10x_right_shape"]
         rows.append([f"random_n8_k{K}_{tag}", trials, ratio, "[{:.2f}, {:.2f}]".format(*extra["ci"]),
                      int(round(over * trials)), wrong_ok, fails, extra["unambiguous"],
                      "[{:.2f}, {:.2f}]".format(*extra["unambiguous_ci"]), extra["ambiguous_rate"],
                      extra["over_10x_unambiguous"], extra["missed_global_minimum"], extra["over_10x_at_optimum"],
-                     extra["aligned"]])
+                     extra["aligned"], extra["mirror_aligned"], extra["over_10x_right_shape"]])
     fig["rmse_over_crlb_default_worst"] = worst_ratio
     fig["rounds_over_10x_total"] = worst_over
     fig["rmse_over_crlb_unambiguous_worst"] = worst_sure
     fig["rounds_over_10x_unambiguous_total"] = over_sure
     fig["rounds_missed_global_minimum_total"] = missed_total
+    fig["rounds_over_10x_right_shape_mirrored_frame_total"] = right_shape_total
     print_table(f"Default call calibrate_anchors(rm): sigma={SIGMA:.4f} m (targets ratio <= 1.05, 0 rounds >= 10x)",
                 ["case", "trials", "RMSE/sqrt(CRLB)", "95 % CI", "rounds >= 10x",
                  "wrong & converged & not ambiguous rate", "error rate", "ratio, unambiguous rounds", "95 % CI",
                  "ambiguous rate", ">= 10x & unambiguous", "missed global minimum",
-                 ">= 10x fitting as well as the truth basin", "shape only: aligned / free-gauge bound"], rows)
+                 ">= 10x fitting as well as the truth basin", "shape only: aligned / free-gauge bound",
+                 "shape up to a mirror", ">= 10x, right shape, mirrored frame"], rows)
 
     rows = []
     sparse_rng = np.random.default_rng(1)  # its own stream: the sections after it draw as before
