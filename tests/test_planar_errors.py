@@ -38,3 +38,8 @@ def test_planar_errors_match_an_svd_procrustes_reference(rng):
         cos = d_true @ d_est / np.linalg.norm(d_true) / np.linalg.norm(d_est)
         np.testing.assert_allclose(rotation[k], np.arccos(np.clip(cos, -1, 1)), atol=1e-9)
     assert t_const[0, 1] == cap and np.all(t_const <= cap)
+    # the batched env's call (constellation errors only) gives the same numbers
+    only = planar_errors(rot, origin, anchors_true, tags_true, anchors_est, tag_fix, cap, False)
+    np.testing.assert_array_equal(only[0], a_const)
+    np.testing.assert_array_equal(only[1], t_const)
+    assert only[2].size == only[3].size == only[4].size == 0

@@ -176,3 +176,22 @@ def test_compiled_path_interpolation_is_numpys():
     s = np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2)
     w = ((t - times[s]) / np.maximum(times[s + 1] - times[s], 1e-12))[:, None]
     np.testing.assert_array_equal(interpolate(times, stack, t), (1.0 - w) * stack[s] + w * stack[s + 1])
+
+
+def test_batched_distance_and_frame_kernels_are_numpys_numbers():
+    # the batched env's compiled tag distances and odometry-in-frame update replaced numpy
+    # calls; a copy's trajectory must not move by a bit
+    from uwb_env.sim._odometry_kernel import add_rotated
+    from uwb_env.sim.ranging import planar_distances
+
+    rng = np.random.default_rng(5)
+    tags, anchors = rng.uniform(-30, 30, (50, 3, 2)), rng.uniform(-30, 30, (50, 4, 2))
+    np.testing.assert_array_equal(planar_distances(tags, anchors),
+                                  np.linalg.norm(tags[:, :, None, :] - anchors[:, None, :, :], axis=-1))
+    angle = rng.uniform(-np.pi, np.pi, 50)
+    rot = np.stack([[[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]] for a in angle])
+    odo = rng.normal(0, 0.1, (50, 4, 2)) * rng.choice([1e-3, 1.0, 1e3], (50, 4, 2))
+    est = rng.uniform(-30, 30, (50, 4, 2))
+    want = est + np.einsum("bnj,bij->bni", odo, rot)
+    add_rotated(est, odo, rot)
+    np.testing.assert_array_equal(est, want)

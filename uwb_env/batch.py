@@ -39,10 +39,12 @@ from uwb_env.localization.errors import LocalizationError
 from uwb_env.localization.multilateration import fix_tags_2d
 from uwb_env.measurements import RangeMatrix
 from uwb_env.rewards import reward_terms
+from uwb_env.sim._odometry_kernel import add_rotated
 from uwb_env.sim.calibration_round import busy_fraction
 from uwb_env.sim.motion import MotionModel
 from uwb_env.sim.odometry import OdometryModel
 from uwb_env.sim.planar_errors import planar_errors
+from uwb_env.sim.ranging import planar_distances
 from uwb_env.sim.round_cohort import RoundCohort
 from uwb_env.sim.round_path import RoundPath
 from uwb_env.sim.world import formation_xy, tags_inside
@@ -173,7 +175,7 @@ class BatchedSystem:
         before = self.anchors_true.copy() if running else None
         delta, turn = self.motion.step(self.dt_s, self.rng)
         odo = self.odometry.estimated_displacement(delta[: B * N], turn[: B * N], self.dt_s, self.rng)
-        self.anchors_est += np.einsum("bnj,bij->bni", odo.reshape(B, N, 2), self.frame_rot)
+        add_rotated(self.anchors_est, odo.reshape(B, N, 2), self.frame_rot)  # odometry in each copy's frame
         t0 = self.time_s
         self.step_count += 1
         self.time_s = self.step_count * self.dt_s
@@ -262,7 +264,7 @@ class BatchedSystem:
         # every copy (no round running anywhere, the usual step): views instead of gathered copies
         rows = slice(None) if len(sel) == self.B else sel
         # ranges only where tags are being fixed (no ranging while a copy's round runs)
-        d = np.linalg.norm(self.tags_true[rows][:, :, None, :] - self.anchors_true[rows][:, None, :, :], axis=-1)
+        d = planar_distances(self.tags_true[rows], self.anchors_true[rows])
         raw = self.range_model.measure(d, self.rng)  # (S, M, N)
         ranges = np.maximum(self.range_model.correct(raw), 0.0)
         anchors = self.anchors_est[rows]
@@ -296,7 +298,8 @@ class BatchedSystem:
         """(B, N) anchor and (B, M) tag errors after each copy's rigid constellation alignment
         (the single env's kernel, ``sim.planar_errors``), tag errors capped at ``error_cap_m``."""
         a_const, t_const, _, _, _ = planar_errors(self.frame_rot, self.frame_origin, self.anchors_true, self.tags_true,
-                                                  self.anchors_est, self.state.tag_fix, float(self.config.error_cap_m))
+                                                  self.anchors_est, self.state.tag_fix, float(self.config.error_cap_m),
+                                                  False)
         return a_const, t_const
 
     def rewards(self, report: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

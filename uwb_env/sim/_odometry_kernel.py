@@ -116,3 +116,16 @@ def drift_variance_between(heading_var, net, sum_a, sum_b, sum_c, dist, earlier,
                 sum_c[f, i], dist[f, i])
             out[q, i] = _variance(pr, pi, rbr, rbi, rd, heading_var[e, i], ra, rc, white_per_m, carried_base)
     return out
+
+
+@njit(cache=True)
+def add_rotated(estimates, displacement, rot):
+    """estimates (B, N, 2) += each copy's displacement (B, N, 2) rotated by rot (B, 2, 2) into
+    its estimate frame, in place: ``np.einsum("bnj,bij->bni", displacement, rot)``'s numbers
+    (the same two products summed in the same order; tested equal) without its ~1 ms at B = 4096."""
+    for b in range(displacement.shape[0]):
+        r00, r01, r10, r11 = rot[b, 0, 0], rot[b, 0, 1], rot[b, 1, 0], rot[b, 1, 1]
+        for k in range(displacement.shape[1]):
+            x, y = displacement[b, k, 0], displacement[b, k, 1]
+            estimates[b, k, 0] += x * r00 + y * r01
+            estimates[b, k, 1] += x * r10 + y * r11

@@ -19,21 +19,24 @@ from numba import njit
 
 
 @njit(cache=True)
-def planar_errors(rot, origin, anchors_true, tags_true, anchors_est, tag_fix, cap):
+def planar_errors(rot, origin, anchors_true, tags_true, anchors_est, tag_fix, cap, fixed=True):
     """rot (B, 2, 2), origin (B, 2): the world -> estimate frame map of each copy (estimate
     frame point = rot @ (world point - origin)); anchors_true (B, N, 2), tags_true (B, M, 2)
     in the world frame; anchors_est (B, N, 2), tag_fix (B, M, 2) (NaN = no fix).
 
     Returns anchor errors (B, N) and tag errors (B, M) after the constellation transform,
     the same in the fixed frame, and the rotation error (B,) in rad. Tag errors are capped at
-    ``cap`` (a tag without a fix counts as ``cap``); anchor errors are not."""
+    ``cap`` (a tag without a fix counts as ``cap``); anchor errors are not. ``fixed=False``
+    (the batched env, which reads the constellation errors only): the fixed-frame errors and
+    the rotation are not computed (empty arrays; half the kernel's square roots)."""
     b_count, n, _ = anchors_true.shape
     m = tags_true.shape[1]
+    kept = b_count if fixed else 0
     a_const = np.empty((b_count, n))
-    a_fixed = np.empty((b_count, n))
+    a_fixed = np.empty((kept, n))
     t_const = np.empty((b_count, m))
-    t_fixed = np.empty((b_count, m))
-    rotation = np.empty(b_count)
+    t_fixed = np.empty((kept, m))
+    rotation = np.empty(kept)
     ax = np.empty(n)
     ay = np.empty(n)
     for b in range(b_count):
@@ -64,16 +67,21 @@ def planar_errors(rot, origin, anchors_true, tags_true, anchors_est, tag_fix, ca
             px, py = cx * sx - cy * sy + mtx, cx * sy + cy * sx + mty
             ex, ey = anchors_est[b, k, 0], anchors_est[b, k, 1]
             a_const[b, k] = math.hypot(ex - px, ey - py)
-            a_fixed[b, k] = math.hypot(ex - ax[k], ey - ay[k])
+            if fixed:
+                a_fixed[b, k] = math.hypot(ex - ax[k], ey - ay[k])
         for k in range(m):
             x, y = tags_true[b, k, 0] - ox, tags_true[b, k, 1] - oy
             tx, ty = r00 * x + r01 * y, r10 * x + r11 * y
             sx, sy = tx - msx, ty - msy
             px, py = cx * sx - cy * sy + mtx, cx * sy + cy * sx + mty
             ex, ey = tag_fix[b, k, 0], tag_fix[b, k, 1]
-            e1, e2 = math.hypot(ex - px, ey - py), math.hypot(ex - tx, ey - ty)
+            e1 = math.hypot(ex - px, ey - py)
             t_const[b, k] = e1 if e1 <= cap else cap  # NaN (no fix) -> the cap
-            t_fixed[b, k] = e2 if e2 <= cap else cap
+            if fixed:
+                e2 = math.hypot(ex - tx, ey - ty)
+                t_fixed[b, k] = e2 if e2 <= cap else cap
+        if not fixed:
+            continue
         # angle between true and estimated directions 0 -> 1
         dx, dy = ax[1] - ax[0], ay[1] - ay[0]
         fx, fy = anchors_est[b, 1, 0] - anchors_est[b, 0, 0], anchors_est[b, 1, 1] - anchors_est[b, 0, 1]

@@ -6,6 +6,7 @@ A range is NaN when dropped or beyond the maximum range.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -161,3 +162,19 @@ def _drop(out, true, z, q_drop, max_range):
     for i in range(out.shape[0]):
         if z[2, i] > q_drop or true[i] > max_range:
             out[i] = np.nan
+
+
+@njit(cache=True)
+def planar_distances(tags, anchors):
+    """(S, M, N) distances between tags (S, M, >= 2) and anchors (S, N, >= 2) over the first two
+    axes: ``np.linalg.norm(tags[:, :, None, :2] - anchors[:, None, :, :2], axis=-1)``'s numbers
+    without its (S, M, N, 2) temporaries."""
+    s_count, m_count, n_count = tags.shape[0], tags.shape[1], anchors.shape[1]
+    out = np.empty((s_count, m_count, n_count))
+    for s in range(s_count):
+        for m in range(m_count):
+            for k in range(n_count):
+                dx = tags[s, m, 0] - anchors[s, k, 0]
+                dy = tags[s, m, 1] - anchors[s, k, 1]
+                out[s, m, k] = math.sqrt(dx * dx + dy * dy)
+    return out
