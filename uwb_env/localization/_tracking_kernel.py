@@ -153,10 +153,16 @@ def _mirror_candidate(anchors, s, row, px, py, axis, var, margin_chi2):
     """The raw mirror of a finite fix and whether it deserves a refinement: enough ranges, a
     raw misfit within a generous bound (refining moves it at most into the neighbouring
     minimum) and clearly apart (3 range stds). Returns (candidate, mx, my, chi2 of the fix)."""
+    c_fix, n_valid = _chi2(anchors, s, row, px, py, var)
+    return _mirror_candidate_given(anchors, s, row, px, py, axis, var, margin_chi2, c_fix, n_valid)
+
+
+@njit(cache=True)
+def _mirror_candidate_given(anchors, s, row, px, py, axis, var, margin_chi2, c_fix, n_valid):
+    """``_mirror_candidate`` with the fix's chi-square and range count already known."""
     cx, cy, tx, ty = axis
     qx, qy = px - cx, -(py - cy)
     mx, my = cx + tx * qx - ty * qy, cy + tx * qy + ty * qx
-    c_fix, n_valid = _chi2(anchors, s, row, px, py, var)
     c_raw, _ = _chi2(anchors, s, row, mx, my, var)
     ok = (n_valid >= 3 and c_raw < c_fix + margin_chi2 + 50.0 * n_valid
           and math.hypot(mx - px, my - py) > 3.0 * math.sqrt(var))
@@ -221,6 +227,24 @@ def residual_statistics(anchors, positions, ranges):
     anchors (S, N, D), positions (S, M, D) (NaN = no fix), ranges (S, M, N) (NaN = missing)."""
     s_count, m_count, n_count = ranges.shape
     dim = anchors.shape[2]
+    res = np.empty((s_count, m_count, n_count))
+    for s in range(s_count):
+        for m in range(m_count):
+            for k in range(n_count):
+                d2 = 0.0
+                for a in range(dim):
+                    t = positions[s, m, a] - anchors[s, k, a]
+                    d2 += t * t
+                res[s, m, k] = math.sqrt(d2) - ranges[s, m, k]
+    return statistics_of_residuals(positions, ranges, res)
+
+
+@njit(cache=True)
+def statistics_of_residuals(positions, ranges, res):
+    """``residual_statistics`` from the fitted-minus-measured ranges ``res`` (S, M, N) of the
+    fixes ``positions`` (read only where a fix is finite and its range measured)."""
+    s_count, m_count, n_count = ranges.shape
+    dim = positions.shape[2]
     tag_mean = np.zeros(s_count)
     anchor_mean = np.zeros((s_count, n_count))
     any_fix = np.zeros(s_count, np.bool_)
@@ -240,11 +264,7 @@ def residual_statistics(anchors, positions, ranges):
                 r = ranges[s, m, k]
                 if r != r:
                     continue
-                d2 = 0.0
-                for a in range(dim):
-                    t = positions[s, m, a] - anchors[s, k, a]
-                    d2 += t * t
-                e = math.sqrt(d2) - r
+                e = res[s, m, k]
                 total += e * e
                 seen += 1
                 anchor_mean[s, k] += abs(e)
@@ -274,9 +294,25 @@ def _drift_terms(anchor_cov, pred_var, cal_var, use_cov, s, v, var0, kx, ky):
 
 
 @njit(cache=True)
-def _rms_of(anchors, s, ranges_row, px, py):
-    """RMS range residual of (px, py); NaN below 3 ranges or when not finite (the tracker's rule)."""
-    total, seen = _chi2(anchors, s, ranges_row, px, py, 1.0)
+def _residual_row(anchors, s, ranges_row, px, py, out):
+    """Fitted minus measured range to every anchor of group s into ``out`` (NaN where a range is
+    missing); returns the sum of squares over the measured ones and their count (``_chi2``'s
+    sum, in the same order)."""
+    total = 0.0
+    seen = 0
+    for k in range(len(ranges_row)):
+        e = _range_residual(anchors, s, k, ranges_row[k], px, py)
+        out[k] = e
+        if e == e:
+            total += e * e
+            seen += 1
+    return total, seen
+
+
+@njit(cache=True)
+def _rms_from(total, seen):
+    """RMS range residual from a residual row's sum of squares and count; NaN below 3 ranges or
+    when not finite (the tracker's rule)."""
     err = math.sqrt(total / seen) if seen else np.nan
     if seen < 3 or not math.isfinite(err):
         return np.nan
@@ -355,13 +391,14 @@ def _degenerate(anchors, s, ranges_row, px, py):
 
 
 @njit(cache=True)
-def _poor_fit(anchors, pred_var, s, ranges_row, px, py, v, fit_chi2):
-    """Whether the ranges reject the fix (px, py) at the fit test's level: their chi-square with
-    each range's variance v + pred_var / 2 above fit_chi2[measured ranges - 2]."""
+def _poor_fit(pred_var, s, residuals, v, fit_chi2):
+    """Whether the ranges reject a fix (its residual row, NaN = missing range) at the fit
+    test's level: their chi-square with each range's variance v + pred_var / 2 above
+    fit_chi2[measured ranges - 2]."""
     total = 0.0
     seen = 0
-    for k in range(len(ranges_row)):
-        e = _range_residual(anchors, s, k, ranges_row[k], px, py)
+    for k in range(len(residuals)):
+        e = residuals[k]
         if e == e:
             total += e * e / (v + 0.5 * pred_var[s, k])
             seen += 1
@@ -398,6 +435,10 @@ def tag_step_2d(anchors, previous, ranges, range_var, pred_var, cal_var, anchor_
     mvar0 = np.empty(n_count)
     mkx = np.empty(n_count)
     mky = np.empty(n_count)
+    # each tag's residual row at its fix, computed once: the fit test, the mirror check's chi-square
+    # of the fix and the residual statistics read it (they each recomputed it before)
+    res = np.full((s_count, m_count, n_count), np.nan)
+    cand = np.empty(n_count)
     for s in range(s_count):
         v = range_var[s]
         _drift_terms(anchor_cov, pred_var, cal_var, use_cov, s, v, var0, kx, ky)
@@ -413,18 +454,23 @@ def tag_step_2d(anchors, previous, ranges, range_var, pred_var, cal_var, anchor_
         mirror_terms = False
         for m in range(m_count):
             row = ranges[s, m]
+            here = res[s, m]
             px, py = previous[s, m, 0], previous[s, m, 1]
             err = np.nan
+            total, seen = 0.0, 0
             if math.isfinite(px) and math.isfinite(py):
                 px, py = _track_one(anchors, s, row, px, py, var0, kx, ky, code, c, iterations)
-                err = _rms_of(anchors, s, row, px, py)
+                total, seen = _residual_row(anchors, s, row, px, py, here)
+                err = _rms_from(total, seen)
             if not err <= restart:
                 ok, sx, sy = _closed_form(anchors, s, row, v)
                 if ok:
                     qx, qy = _track_one(anchors, s, row, sx, sy, var0, kx, ky, code, c, refit_iterations)
-                    e2 = _rms_of(anchors, s, row, qx, qy)
+                    total2, seen2 = _residual_row(anchors, s, row, qx, qy, cand)
+                    e2 = _rms_from(total2, seen2)
                     if math.isfinite(e2) and not e2 >= err and not _degenerate(anchors, s, row, qx, qy):
-                        px, py, err = qx, qy, e2
+                        px, py, err, total, seen = qx, qy, e2, total2, seen2
+                        here[:] = cand
                         refit[s, m] = True
             if not math.isfinite(err):
                 pos[s, m, 0] = pos[s, m, 1] = np.nan
@@ -432,7 +478,8 @@ def tag_step_2d(anchors, previous, ranges, range_var, pred_var, cal_var, anchor_
                 status[s, m] = TAG_NO_FIX
                 continue
             if n_count >= 3:
-                ok, mx, my, c_fix = _mirror_candidate(anchors, s, row, px, py, axis, mvar, margin_chi2)
+                ok, mx, my, c_fix = _mirror_candidate_given(anchors, s, row, px, py, axis, mvar, margin_chi2,
+                                                            total / mvar, seen)
                 if ok:
                     if not mirror_terms:
                         _drift_terms(anchor_cov, pred_var, cal_var, use_cov, s, mvar, mvar0, mkx, mky)
@@ -442,13 +489,13 @@ def tag_step_2d(anchors, previous, ranges, range_var, pred_var, cal_var, anchor_
                     if verdict == 1:
                         px, py = rx, ry
                         switched[s, m] = True
-                        e2 = _rms_of(anchors, s, row, px, py)
+                        e2 = _rms_from(*_residual_row(anchors, s, row, px, py, here))
                         err = e2 if math.isfinite(e2) else err
                     elif verdict == 2:
                         status[s, m] = TAG_AMBIGUOUS
-            if status[s, m] == TAG_OK and _poor_fit(anchors, pred_var, s, row, px, py, v, fit_chi2):
+            if status[s, m] == TAG_OK and _poor_fit(pred_var, s, here, v, fit_chi2):
                 status[s, m] = TAG_POOR_FIT
             pos[s, m, 0], pos[s, m, 1] = px, py
             rms[s, m] = err
-    tag_mean, anchor_mean, any_fix = residual_statistics(anchors, pos, ranges)
+    tag_mean, anchor_mean, any_fix = statistics_of_residuals(pos, ranges, res)
     return pos, rms, status, switched, refit, tag_mean, anchor_mean, any_fix
