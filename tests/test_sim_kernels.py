@@ -195,3 +195,20 @@ def test_batched_distance_and_frame_kernels_are_numpys_numbers():
     want = est + np.einsum("bnj,bij->bni", odo, rot)
     add_rotated(est, odo, rot)
     np.testing.assert_array_equal(est, want)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_round_exchange_distances_are_the_numpy_expression(dim):
+    from uwb_env.sim.calibration_round import _exchange_distances
+
+    rng = np.random.default_rng(dim)
+    a0 = rng.uniform(0, 30, (5, 6, dim))
+    a1 = a0 + rng.normal(0, 0.3, a0.shape)
+    initiator = rng.integers(0, 6, 40)
+    responder = (initiator + rng.integers(1, 6, 40)) % 6
+    t = np.sort(rng.uniform(1.0, 1.2, 40))
+    alpha = ((t - 1.0) / 0.2)[:, None]
+    pi = a0[..., initiator, :] + alpha * (a1[..., initiator, :] - a0[..., initiator, :])
+    pj = a0[..., responder, :] + alpha * (a1[..., responder, :] - a0[..., responder, :])
+    np.testing.assert_array_equal(_exchange_distances(t, 1.0, 1.2, a0, a1, initiator, responder),
+                                  np.linalg.norm(pi - pj, axis=-1))

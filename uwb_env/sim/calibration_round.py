@@ -11,9 +11,12 @@ anchor re-locates against the others, at 1/n of a team round's channel time (one
 
 from __future__ import annotations
 
+import functools
+import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from uwb_env.config import CalibrationConfig
 from uwb_env.measurements import RangeMatrix
@@ -48,31 +51,61 @@ class RoundTiming:
         return m * self.handoff_s + m * (n - 1) * k * self.exchange_s
 
     def schedule(self, n_anchors: int, measurements_per_pair: int, initiators=None):
-        """Per exchange: (time offset from round start (s), initiator, responder), in order.
+        """Per exchange: (time offset from round start (s), initiator, responder), in order
+        (read-only arrays, shared by every round of the same shape).
 
         ``initiators``: the anchors that initiate, in turn (default: all, a team round)."""
-        n, k = n_anchors, measurements_per_pair
-        order = np.arange(n) if initiators is None else np.asarray(initiators, dtype=int)
-        if order.size == 0 or order.min() < 0 or order.max() >= n or len(set(order.tolist())) != order.size:
-            raise ValueError(f"initiators={initiators!r}: must be distinct anchor indices in [0, {n})")
-        slot = np.repeat(np.arange(len(order)), (n - 1) * k)  # position of the initiator in turn
-        initiator = order[slot]
-        responder_block = np.array([[j for j in range(n) if j != i] for i in order]).reshape(len(order), n - 1)
-        responder = np.repeat(responder_block, k, axis=1).ravel()
-        index_in_block = np.tile(np.arange((n - 1) * k), len(order))
-        times = (slot + 1) * self.handoff_s + (slot * (n - 1) * k + index_in_block + 1) * self.exchange_s
-        return times, initiator, responder
+        key = None if initiators is None else tuple(np.asarray(initiators, dtype=int).ravel().tolist())
+        return _schedule(self, int(n_anchors), int(measurements_per_pair), key)
+
+
+@functools.lru_cache(maxsize=256)
+def _schedule(timing: RoundTiming, n: int, k: int, initiators: tuple | None):
+    """``RoundTiming.schedule`` (a round of the same shape starts every few steps: built once)."""
+    order = np.arange(n) if initiators is None else np.asarray(initiators, dtype=int)
+    if order.size == 0 or order.min() < 0 or order.max() >= n or len(set(order.tolist())) != order.size:
+        raise ValueError(f"initiators={list(initiators or ())!r}: must be distinct anchor indices in [0, {n})")
+    slot = np.repeat(np.arange(len(order)), (n - 1) * k)  # position of the initiator in turn
+    initiator = order[slot]
+    responder_block = np.array([[j for j in range(n) if j != i] for i in order]).reshape(len(order), n - 1)
+    responder = np.repeat(responder_block, k, axis=1).ravel()
+    index_in_block = np.tile(np.arange((n - 1) * k), len(order))
+    times = (slot + 1) * timing.handoff_s + (slot * (n - 1) * k + index_in_block + 1) * timing.exchange_s
+    for shared in (times, initiator, responder):
+        shared.flags.writeable = False
+    return times, initiator, responder
 
 
 def exchange_ranges(times_s, t0_s, t1_s, anchors_t0, anchors_t1, initiator, responder, range_model, rng):
     """Measured ranges of the exchanges at ``times_s`` in (t0, t1], the anchors' positions
     interpolated linearly over the step; ``anchors_t0/t1`` (n, dim), or (copies, n, dim) for
     a cohort of copies sharing the schedule."""
-    alpha = ((times_s - t0_s) / max(t1_s - t0_s, 1e-12))[:, None]
-    a0i, a0j = anchors_t0[..., initiator, :], anchors_t0[..., responder, :]
-    pi = a0i + alpha * (anchors_t1[..., initiator, :] - a0i)
-    pj = a0j + alpha * (anchors_t1[..., responder, :] - a0j)
-    return range_model.measure(np.linalg.norm(pi - pj, axis=-1), rng)
+    a0, a1 = np.asarray(anchors_t0, dtype=float), np.asarray(anchors_t1, dtype=float)
+    single = a0.ndim == 2
+    d = _exchange_distances(np.asarray(times_s, dtype=float), float(t0_s), float(t1_s), a0[None] if single else a0,
+                            a1[None] if single else a1, initiator, responder)
+    return range_model.measure(d[0] if single else d, rng)
+
+
+@njit(cache=True)
+def _exchange_distances(times, t0, t1, a0, a1, initiator, responder):
+    """(C, E) distances between each exchange's two anchors at its time, positions interpolated
+    between a0 and a1 (C, n, dim): the numpy expression it replaced (alpha = (t - t0) /
+    max(t1 - t0, 1e-12), p = a0 + alpha (a1 - a0), the norm's sum of squares in axis order)."""
+    c_count, dim = a0.shape[0], a0.shape[2]
+    span = max(t1 - t0, 1e-12)
+    out = np.empty((c_count, len(times)))
+    for c in range(c_count):
+        for e in range(len(times)):
+            alpha = (times[e] - t0) / span
+            i, j = initiator[e], responder[e]
+            d2 = 0.0
+            for a in range(dim):
+                pi = a0[c, i, a] + alpha * (a1[c, i, a] - a0[c, i, a])
+                pj = a0[c, j, a] + alpha * (a1[c, j, a] - a0[c, j, a])
+                d2 = d2 + (pi - pj) * (pi - pj) if a else (pi - pj) * (pi - pj)
+            out[c, e] = math.sqrt(d2)
+    return out
 
 
 def busy_fraction(rnd, t0_s: float, t1_s: float, dt_s: float):
