@@ -207,7 +207,7 @@ def test_round_exchange_distances_are_the_numpy_expression(dim):
     initiator = rng.integers(0, 6, 40)
     responder = (initiator + rng.integers(1, 6, 40)) % 6
     t = np.sort(rng.uniform(1.0, 1.2, 40))
-    alpha = ((t - 1.0) / 0.2)[:, None]
+    alpha = ((t - 1.0) / max(1.2 - 1.0, 1e-12))[:, None]  # the span as the round computes it
     pi = a0[..., initiator, :] + alpha * (a1[..., initiator, :] - a0[..., initiator, :])
     pj = a0[..., responder, :] + alpha * (a1[..., responder, :] - a0[..., responder, :])
     np.testing.assert_array_equal(_exchange_distances(t, 1.0, 1.2, a0, a1, initiator, responder),
