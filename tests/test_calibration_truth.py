@@ -300,3 +300,37 @@ def test_a_flat_3d_team_still_gets_a_first_calibration():
     system = env.system
     assert system.calibration_ambiguous
     assert system.world.anchor_errors_m().max() < 0.5
+
+
+def test_the_thin_layout_flip_search_never_turns_a_converged_answer_into_an_unconverged_one(monkeypatch):
+    # Dozens of flipped starts: one stopped at its iteration cap must not win over a converged
+    # answer by a hair (two anchors 1 cm apart on a strip: 11 of 1,213 rounds did, in review)
+    import uwb_env.localization.calibration as calibration
+
+    sigma, worse = default_range_std_m(), []
+    for seed in range(150):
+        rng = np.random.default_rng(seed)
+        n = 4 + seed % 5
+        x = np.column_stack([rng.uniform(0, 40, n), rng.uniform(0, 4, n)])
+        x[1] = x[0] + rng.normal(0, 0.01, 2)
+        m = noisy_round(x, rng, sigma, 5)
+        with monkeypatch.context() as patched:
+            patched.setattr(calibration, "FLIP_SEARCH_MAX_N", 0)
+            try:
+                without = calibrate_anchors(m)
+            except Exception:
+                continue
+        res = calibrate_anchors(m)
+        if without.converged and not res.converged:
+            worse.append(seed)
+    assert worse == []
+
+
+def test_an_infinite_carry_on_an_unmeasured_direction_counts_for_nothing():
+    # combine_directions weights each direction's carry by its information: a direction with no
+    # exchanges (information 0) contributes nothing, whatever its carry (inf included)
+    from uwb_env.measurements import combine_directions
+
+    mean, var = combine_directions(np.array([5.0]), np.array([np.nan]), np.array([400.0]), np.array([0.0]),
+                                   np.array([0.01]), np.array([np.inf]))
+    assert np.isfinite(var).all() and var[0] == 1.0 / 400.0 + 0.01

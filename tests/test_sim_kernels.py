@@ -212,3 +212,17 @@ def test_round_exchange_distances_are_the_numpy_expression(dim):
     pj = a0[..., responder, :] + alpha * (a1[..., responder, :] - a0[..., responder, :])
     np.testing.assert_array_equal(_exchange_distances(t, 1.0, 1.2, a0, a1, initiator, responder),
                                   np.linalg.norm(pi - pj, axis=-1))
+
+
+def test_drift_variance_takes_any_numpy_index():
+    rng = np.random.default_rng(8)
+    o = OdometryModel(OdometryConfig())
+    o.reset(6, rng)
+    for _ in range(5):
+        o.estimated_displacement(rng.normal(0, 0.2, (6, 2)), np.abs(rng.normal(0, 0.2, 6)), 0.2, rng)
+    everyone = o.expected_drift_var_m2(2)
+    index = np.array([[0, 1], [4, 5]])
+    np.testing.assert_array_equal(o.expected_drift_var_m2(2, index), everyone[index])
+    single = o.expected_drift_var_m2(2, 3)
+    assert np.ndim(single) == 0 and single == everyone[3]
+    assert o.expected_drift_var_m2(2, np.zeros(6, dtype=bool)).shape == (0,)

@@ -295,10 +295,17 @@ def calibrate_anchors(
         # single flips, which needed two anchors flipped at once: up to 8 anchors every pair is
         # flipped too). Solve from each flip, again from a flip that wins: a lower cost wins, a
         # tie is ambiguous.
+        # Only flips that converge compete: with dozens of extra starts, one stopped at its
+        # iteration cap could otherwise win by a hair over a converged answer (two anchors
+        # 1 cm apart: 11 of 1,213 rounds went from ok to not converged).
         for _ in range(2):
+            flips = problem.solve_starts(refs, _flip_starts(best.x, pairs_up_to_n=FLIP_PAIRS_MAX_N))
+            flips = [c for c in flips if c.out.converged]
+            if not flips:
+                break
             before = best
-            best, tie = problem.add_starts(refs, candidates, _flip_starts(best.x, pairs_up_to_n=FLIP_PAIRS_MAX_N),
-                                           prior, best, ambiguous)
+            candidates += flips
+            best, tie = problem.select(candidates, prior)
             ambiguous = ambiguous or tie
             if best is before:
                 break
@@ -774,8 +781,8 @@ THIN_ASPECT = 0.1
 # 52 ms at 32, 0.55 s at 64); the starts alone missed no least-squares optimum on thin strips
 # of 16 and 32 anchors (0 of 1,000 rounds each in bench_localization), 3 of 500 at 8.
 FLIP_SEARCH_MAX_N = 16
-# ... and flips of every two anchors across the axis (n (n - 1) / 2 more solves; 6 ms in all
-# at N = 8) up to this many
+# ... and flips of every two anchors across the axis (n (n - 1) / 2 more solves; 6-8 ms in all
+# at N = 8, ~30 ms with a robust loss) up to this many
 FLIP_PAIRS_MAX_N = 8
 
 

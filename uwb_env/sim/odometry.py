@@ -156,11 +156,13 @@ class OdometryModel:
             return self._steps[robots] * dim * cfg.uniform_error_m**2 / 3.0
         if isinstance(robots, slice) and robots == slice(None):
             acc = {"_h0": self._h0, **{name: getattr(self, name) for name in self._ACCUMULATORS[1:]}}
-        else:
-            acc = {name: np.atleast_1d(getattr(self, name)[robots]) for name in ("_h0",) + self._ACCUMULATORS[1:]}
+            shape = self._h0.shape
+        else:  # any index numpy takes (int, mask, array of any shape): the compiled loop runs flat
+            acc = {name: np.ravel(getattr(self, name)[robots]) for name in ("_h0",) + self._ACCUMULATORS[1:]}
+            shape = np.shape(self._h0[robots])
         out = drift_variance(acc["_net"], acc["_sum_b"], acc["_dist"], acc["_h0"], acc["_sum_a"], acc["_sum_c"],
                              *self._variance_constants())
-        return out if np.ndim(self._h0[robots]) else out[0]
+        return out.reshape(shape)[()]  # a numpy scalar for an int index, as numpy's indexing gives
 
     def _variance_constants(self) -> tuple[float, float]:
         """The distance model's white-noise variance per metre and the scale error's variance."""
