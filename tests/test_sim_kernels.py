@@ -226,3 +226,27 @@ def test_drift_variance_takes_any_numpy_index():
     single = o.expected_drift_var_m2(2, 3)
     assert np.ndim(single) == 0 and single == everyone[3]
     assert o.expected_drift_var_m2(2, np.zeros(6, dtype=bool)).shape == (0,)
+
+
+def test_compiled_slip_step_is_the_numpy_bookkeeping():
+    from uwb_env.sim._odometry_kernel import slip_step
+
+    rng = np.random.default_rng(9)
+    n, q, dt, duration, mult = 50, 1.5, 0.2, 1.0, 3.0
+    left_np, left_k, any_np = np.zeros(n), np.zeros(n), False
+    for _ in range(200):
+        noise = rng.standard_normal(4 * n)
+        start = noise[3 * n:] > q
+        gain_np = None
+        if any_np or start.any():  # the numpy code the kernel replaced
+            slipping = left_np > 0.0
+            left_np = np.where(start & ~slipping, duration, np.maximum(left_np - dt, 0.0))
+            any_np = bool((left_np > 0.0).any())
+            gain_np = np.where(slipping, mult, 1.0)
+        gain_k = np.empty(n)
+        touched, any_k = slip_step(left_k, noise, q, bool((left_k > 0).any()), dt, duration, mult, gain_k)
+        assert touched == (gain_np is not None)
+        np.testing.assert_array_equal(left_k, left_np)
+        if touched:
+            assert any_k == any_np
+            np.testing.assert_array_equal(gain_k, gain_np)

@@ -119,7 +119,7 @@ class LocalizationSystem:
         # the last team round's fit verdict (CALIBRATION_FIT_NAMES), shape ambiguity and chi2/dof
         self.calibration_fit, self.calibration_ambiguous, self.calibration_chi2_per_dof = 0, False, 0.0
         self.tag_mirror_switches = 0  # fixes the ranges rejected in favour of their mirror
-        self.last_round_links: np.ndarray | None = None
+        self._links_round = None  # the round whose links last_round_links shows (rendering)
         self._round_path = self._new_round_path()  # the first calibration's rounds, all of them
         result = self._first_calibration()
         # The solution describes the robots at the rounds' midpoint; the solver's frame
@@ -273,15 +273,22 @@ class LocalizationSystem:
             self._record_round_step()
             report.calibrating_fraction = busy_fraction(rnd, t0, world.time_s, dt)
             self.time_calibrating_s += report.calibrating_fraction * dt
-            self.last_round_links = np.column_stack([rnd.initiator, rnd.responder])
+            self._links_round = rnd
             if rnd.done:
                 report.round_finished = True
                 report.calibration_failed = self._finish_round()
             self._hold_tags(dt)
         else:
-            self.last_round_links = None
+            self._links_round = None
             self._fix_tags()
         return report
+
+    @property
+    def last_round_links(self) -> np.ndarray | None:
+        """(E, 2) initiator / responder of the exchanges of the round running at the last step
+        (None between rounds): what the renderer draws."""
+        rnd = self._links_round
+        return None if rnd is None else np.column_stack([rnd.initiator, rnd.responder])
 
     # -- calibration -----------------------------------------------------------------------------
     def _triggered(self, requests: np.ndarray) -> bool:

@@ -30,7 +30,7 @@ import numpy as np
 from gymnasium import spaces
 
 from uwb_env.config import EnvConfig
-from uwb_env.env.parallel_env import UWBCalibrationParallelEnv
+from uwb_env.env.parallel_env import _PLAIN_INTS, UWBCalibrationParallelEnv
 
 
 class CalibrationSchedulingEnv(gym.Env):
@@ -59,7 +59,9 @@ class CalibrationSchedulingEnv(gym.Env):
         return self._flat(obs), self._info(infos)
 
     def step(self, action):
-        if not self.action_space.contains(action):
+        # plain ints (the usual case) checked without Space.contains' conversions
+        if not (type(action) in _PLAIN_INTS and 0 <= action < self.action_space.n) \
+                and not self.action_space.contains(action):
             raise ValueError(f"action={action!r}: not in {self.action_space}")
         actions = {a: int(action) for a in self.parallel.agents}
         obs, rewards, _, truncs, infos = self.parallel.step(actions)

@@ -129,3 +129,32 @@ def add_rotated(estimates, displacement, rot):
             x, y = displacement[b, k, 0], displacement[b, k, 1]
             estimates[b, k, 0] += x * r00 + y * r01
             estimates[b, k, 1] += x * r10 + y * r11
+
+
+@njit(cache=True)
+def slip_step(slip_left, noise, q, any_slip, dt, duration, multiplier, gain):
+    """One step of the slips: a robot not slipping starts one where its normal
+    ``noise[3n + i]`` exceeds ``q``; the time left shrinks by dt. Nothing is touched while
+    nobody slips (``any_slip``) or starts to: returns (False, False). Otherwise ``slip_left``
+    (n,) is updated in place, ``gain`` (n,) receives each robot's noise multiplier for this
+    step (``multiplier`` where it was slipping, else 1) and (True, whether anyone still slips)
+    is returned."""
+    n = slip_left.shape[0]
+    if not any_slip:
+        starts = False
+        for i in range(n):
+            if noise[3 * n + i] > q:
+                starts = True
+                break
+        if not starts:
+            return False, False
+    still = False
+    for i in range(n):
+        slipping = slip_left[i] > 0.0
+        left = max(slip_left[i] - dt, 0.0)
+        if noise[3 * n + i] > q and not slipping:
+            left = duration
+        slip_left[i] = left
+        still = still or left > 0.0
+        gain[i] = multiplier if slipping else 1.0
+    return True, still

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from uwb_env.config import OdometryConfig
-from uwb_env.sim._odometry_kernel import drift_step, drift_variance, drift_variance_between, recentre
+from uwb_env.sim._odometry_kernel import drift_step, drift_variance, drift_variance_between, recentre, slip_step
 from uwb_env.sim.ranging import upper_tail_threshold
 
 
@@ -69,14 +69,12 @@ class OdometryModel:
         if cfg.slip_rate_per_s > 0.0:
             if dt_s != self._slip_dt_s:  # the threshold depends on dt only: compute it once
                 self._slip_dt_s, self._slip_q = dt_s, upper_tail_threshold(cfg.slip_rate_per_s * dt_s)
-            start = noise[3 * n :] > self._slip_q
-            # Slips are rare: skip the per-robot bookkeeping while nobody slips or starts to.
-            if self._any_slip or start.any():
-                slipping = self.slip_left_s > 0.0
-                self.slip_left_s = np.maximum(self.slip_left_s - dt_s, 0.0)
-                self.slip_left_s = np.where(start & ~slipping, cfg.slip_duration_s, self.slip_left_s)
-                self._any_slip = bool((self.slip_left_s > 0.0).any())
-                gain = np.where(slipping, cfg.slip_noise_multiplier, 1.0)
+            # Slips are rare: no per-robot bookkeeping while nobody slips or starts to.
+            gain_buf = np.empty(n)
+            touched, any_slip = slip_step(self.slip_left_s, noise, self._slip_q, self._any_slip, float(dt_s),
+                                          cfg.slip_duration_s, cfg.slip_noise_multiplier, gain_buf)
+            if touched:
+                self._any_slip, gain = any_slip, gain_buf
         planar = np.empty((n, 2))
         drift_step(delta, turn_rad, noise, self.scale, self._ones if gain is None else gain, self.yaw_error_rad,
                    self._yaw_var_per_m, self._yaw_var_per_rad, cfg.noise_std_m_per_sqrt_m, self.expected_slip_gain2,
