@@ -103,7 +103,7 @@ def _exchange_distances(times, t0, t1, a0, a1, initiator, responder):
             for a in range(dim):
                 pi = a0[c, i, a] + alpha * (a1[c, i, a] - a0[c, i, a])
                 pj = a0[c, j, a] + alpha * (a1[c, j, a] - a0[c, j, a])
-                d2 = d2 + (pi - pj) * (pi - pj) if a else (pi - pj) * (pi - pj)
+                d2 += (pi - pj) * (pi - pj)
             out[c, e] = math.sqrt(d2)
     return out
 

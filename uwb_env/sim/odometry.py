@@ -152,14 +152,13 @@ class OdometryModel:
         cfg = self.config
         if self._uniform:
             return self._steps[robots] * dim * cfg.uniform_error_m**2 / 3.0
-        if isinstance(robots, slice) and robots == slice(None):
-            acc = {"_h0": self._h0, **{name: getattr(self, name) for name in self._ACCUMULATORS[1:]}}
-            shape = self._h0.shape
-        else:  # any index numpy takes (int, mask, array of any shape): the compiled loop runs flat
-            acc = {name: np.ravel(getattr(self, name)[robots]) for name in ("_h0",) + self._ACCUMULATORS[1:]}
+        arrays = [getattr(self, name) for name in ("_net", "_sum_b", "_dist", "_h0", "_sum_a", "_sum_c")]
+        shape = self._h0.shape
+        if not (isinstance(robots, slice) and robots == slice(None)):
+            # any index numpy takes (int, mask, array of any shape): the compiled loop runs flat
             shape = np.shape(self._h0[robots])
-        out = drift_variance(acc["_net"], acc["_sum_b"], acc["_dist"], acc["_h0"], acc["_sum_a"], acc["_sum_c"],
-                             *self._variance_constants())
+            arrays = [np.ravel(a[robots]) for a in arrays]
+        out = drift_variance(*arrays, *self._variance_constants())
         return out.reshape(shape)[()]  # a numpy scalar for an int index, as numpy's indexing gives
 
     def _variance_constants(self) -> tuple[float, float]:
