@@ -17,7 +17,10 @@ Per case also: ``rounds_missed_global_minimum_*``, rounds whose answer fits the 
 the least-squares solve started at the truth (a search failure), and
 ``rounds_over_10x_at_least_squares_optimum_*``, rounds at >= 10x whose answer fits at least as
 well as that truth-started solve (the least-squares criterion itself prefers the far shape; rounds
-that raised are counted in the >= 10x figures but in neither of these).
+that raised are counted in the >= 10x figures but in neither of these). ``rounds_raised_*``: rounds
+the call raised for (no answer); ``rounds_degenerate_*``: rounds returned with status
+``degenerate`` (the best fit collinear within the noise, its offsets from the line bounded only
+at second order; their error counts like any other round's).
 
 Accuracy is also reported over the rounds the solver called unambiguous
 (``rmse_over_crlb_unambiguous_*``, ``ambiguous_rate_*``): on thin strips the paper frame's
@@ -157,7 +160,7 @@ def accuracy_case(kind, n, k, trials, rng, missing=0.0, nlos=0.0, loss="linear",
     minimum) and the rounds at >= 10x that fit at least as well as it (the least-squares
     optimum itself is that far off: no solver of this cost can do better)."""
     sq, tr, ratios, wrong_ok, fails, certain = [], [], [], 0, 0, []
-    missed, over_at_optimum, sq_aligned, sq_mirror, tr_free, right_shape = 0, 0, [], [], [], 0
+    missed, over_at_optimum, sq_aligned, sq_mirror, tr_free, right_shape, degenerate = 0, 0, [], [], [], 0, 0
     while len(ratios) < trials:
         x = layout(kind, n, rng)
         mask, kept = drop_pairs(n, missing, rng) if missing else (None, None)
@@ -171,6 +174,7 @@ def accuracy_case(kind, n, k, trials, rng, missing=0.0, nlos=0.0, loss="linear",
             res = calibrate_anchors(m, loss=loss) if loss != "linear" else calibrate_anchors(m)
             e2 = float(((res.positions - truth) ** 2).sum())
             ok = res.converged and not res.ambiguous
+            degenerate += res.status == "degenerate"
             certain.append(not res.ambiguous)
             if loss == "linear" and extra is not None:
                 # the same round without the paper frame: the shape's error after the best rigid
@@ -210,6 +214,7 @@ def accuracy_case(kind, n, k, trials, rng, missing=0.0, nlos=0.0, loss="linear",
         extra["over_10x_unambiguous"] = int(np.sum((ratios >= 10) & sure))
         extra["missed_global_minimum"] = missed
         extra["over_10x_at_optimum"] = over_at_optimum
+        extra["degenerate"] = degenerate
     return rmse_ratio, float((ratios >= 10).mean()), wrong_ok / trials, fails / trials, ratios
 
 
@@ -350,6 +355,7 @@ def main(argv=None) -> dict:
 
     rows = []
     worst_ratio, worst_over, worst_sure, over_sure, missed_total, right_shape_total = 0.0, 0, 0.0, 0, 0, 0
+    raised_total, degenerate_total = 0, 0
     for kind in ("random", "paper", "thin"):
         for n in (3, 4, 8, 16, 32):
             for k in (5, 50):
@@ -373,6 +379,10 @@ def main(argv=None) -> dict:
                 fig[f"rounds_over_10x_at_least_squares_optimum_{key}"] = extra["over_10x_at_optimum"]
                 missed_total += extra["missed_global_minimum"]
                 fig[f"rounds_over_10x_{key}"] = int(round(over * t))
+                fig[f"rounds_raised_{key}"] = int(round(fails * t))
+                fig[f"rounds_degenerate_{key}"] = extra["degenerate"]
+                raised_total += int(round(fails * t))
+                degenerate_total += extra["degenerate"]
                 fig[f"trials_{key}"] = t
                 worst_ratio, worst_over = max(worst_ratio, ratio), worst_over + int(round(over * t))
                 worst_sure = max(worst_sure, extra["unambiguous"])
@@ -391,6 +401,10 @@ def main(argv=None) -> dict:
         fig[f"fold_rate_{tag}_n8"] = over
         fig[f"wrong_converged_rate_{tag}_n8"] = wrong_ok
         fig[f"rounds_over_10x_{tag}_n8"] = int(round(over * trials))
+        fig[f"rounds_raised_{tag}_n8"] = int(round(fails * trials))
+        fig[f"rounds_degenerate_{tag}_n8"] = extra["degenerate"]
+        raised_total += int(round(fails * trials))
+        degenerate_total += extra["degenerate"]
         fig[f"rounds_missed_global_minimum_{tag}_n8"] = extra["missed_global_minimum"]
         fig[f"rounds_over_10x_at_least_squares_optimum_{tag}_n8"] = extra["over_10x_at_optimum"]
         missed_total += extra["missed_global_minimum"]
@@ -409,6 +423,8 @@ def main(argv=None) -> dict:
     fig["rounds_over_10x_unambiguous_total"] = over_sure
     fig["rounds_missed_global_minimum_total"] = missed_total
     fig["rounds_over_10x_right_shape_mirrored_frame_total"] = right_shape_total
+    fig["rounds_raised_total"] = raised_total
+    fig["rounds_degenerate_total"] = degenerate_total
     print_table(f"Default call calibrate_anchors(rm): sigma={SIGMA:.4f} m (targets ratio <= 1.05, 0 rounds >= 10x)",
                 ["case", "trials", "RMSE/sqrt(CRLB)", "95 % CI", "rounds >= 10x",
                  "wrong & converged & not ambiguous rate", "error rate", "ratio, unambiguous rounds", "95 % CI",

@@ -210,6 +210,11 @@ class LocalizationSystem:
             except LocalizationError as err:
                 last = err
                 continue
+            if result.status == "degenerate":
+                # the best fit, but part of the shape is fixed only to second order (collinear
+                # within the noise): no frame to fix on it; keep ranging, pooled
+                last = GeometryError(result.message)
+                continue
             # Without a prior, an ambiguous shape may be folded or mirrored in part: keep ranging
             # rather than fix the frame on it. A poor fit is kept (and reported): more rounds
             # pooled while the robots move would not make the ranges more consistent.
@@ -226,9 +231,12 @@ class LocalizationSystem:
             # from the ranges, the heights from the on-board estimates, reported ambiguous.
             est = self._round_path.midpoint_estimates()
             try:
-                return calibrate_anchors_known_heights(
+                result = calibrate_anchors_known_heights(
                     pooled, est[:, 2], np.sqrt(np.maximum(self.predicted_anchor_var_m2(), self.range_std_m**2)),
                     loss=cfg.solver.loss, f_scale=cfg.solver.f_scale_sigmas, range_std_m=self.pair_range_std_m)
+                if result.status != "degenerate":
+                    return result
+                last = GeometryError(result.message)
             except LocalizationError as err:
                 last = err
         raise (type(last) if last else LocalizationError)(

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from uwb_env.localization import LocalizationError, calibrate_anchors
+from uwb_env.localization import GeometryError, LocalizationError, calibrate_anchors
 from uwb_env.localization.batched_calibration import (
     STATUS_NONE,
     STATUS_POOR,
@@ -82,7 +82,11 @@ class RoundSolutions:
         self.compiled[rows] = True
 
     def put_result(self, row: int, result) -> None:
-        """A full solver's ``CalibrationResult``."""
+        """A full solver's ``CalibrationResult`` (a ``degenerate`` one is not a shape to apply:
+        recorded as the error the solver raised for it before it reported the fit)."""
+        if result.status == "degenerate":
+            self.put_error(row, GeometryError(result.message))
+            return
         self.positions[row] = result.positions
         self.anchor_cov[row] = result.anchor_covariance()
         self.fit[row] = CALIBRATION_FIT_NAMES.index(result.status)

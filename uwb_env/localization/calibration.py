@@ -48,6 +48,7 @@ from scipy.special import chdtrc, chdtri
 
 from uwb_env.localization.alignment import frame_refs, paper_frame, rigid_align
 from uwb_env.localization.buildup import buildup_starts
+from uwb_env.localization.degenerate import degenerate_covariance
 from uwb_env.localization.errors import (
     DisconnectedGraphError,
     GeometryError,
@@ -63,7 +64,7 @@ from uwb_env.measurements import NEGATIVE_RANGE_TOLERANCE_M, RangeMatrix, _pair_
 GAUGES = ("anchor0", "prior")
 INITIALIZERS = ("auto", "trilateration", "mds")
 WEIGHTINGS = ("model", "sample")
-STATUSES = ("ok", "poor_fit", "not_converged")
+STATUSES = ("ok", "poor_fit", "not_converged", "degenerate")
 
 
 @lru_cache(maxsize=1)
@@ -92,7 +93,10 @@ class CalibrationResult:
             upper-tail probability (1.0 when dof = 0: nothing to test).
         status: ``ok``; ``poor_fit`` (converged, but the residuals are larger than the noise
             explains at ``fit_alpha``: a folded shape, outliers or a wrong noise model);
-            ``not_converged`` (iteration limit or no decrease).
+            ``not_converged`` (iteration limit or no decrease); ``degenerate`` (the best fit
+            leaves up to ``dim`` directions fixed only to second order, e.g. three anchors
+            collinear within the noise: their covariance is the profile chi-square's one-sigma
+            half-width, see ``localization.degenerate``; not a shape to apply without care).
         optimizer_converged: the optimizer's own verdict, whatever the fit.
         rejected_pairs: (R, 2) pairs left out as outliers (robust mode), empty otherwise.
         starts_tried: number of starts solved.
@@ -235,8 +239,14 @@ def calibrate_anchors(
         if not candidates:
             raise GeometryError("no start fixes the frame: anchors collinear (coplanar in 3D)")
         if dim == 2 and starts[0][0] == "mds+lift" and not any(c.out.converged for c in candidates):
-            # the lifted start crawled back towards the line: the ranges see collinear anchors
-            raise GeometryError("anchors are collinear within the noise: the y axis is undefined")
+            # The lifted start crawled back towards the line: the ranges see collinear anchors.
+            # The best of those fits is still the answer if the ranges bound the offsets from
+            # the line at second order (``degenerate``); otherwise there is no shape to give.
+            best, _ = problem.select(candidates, None)
+            result = _finish(problem, best, refs, None, gauge, len(candidates), ambiguous=True)
+            if result.status != "degenerate":
+                raise GeometryError("anchors are collinear within the noise: the y axis is undefined")
+            return result
     else:
         refs = _gauge_refs(prior)
         candidates = [problem.solve(refs, prior, "prior")]
@@ -684,7 +694,17 @@ def _reflection_uncertain(positions: np.ndarray, covariance: np.ndarray, dim: in
 def _finish(problem: _Problem, best: _Candidate, refs, prior, gauge, tried, ambiguous=False) -> CalibrationResult:
     n, dim = problem.n, problem.dim
     out, x_gauge = best.out, best.x
-    cov_gauge = out.covariance()
+    try:
+        cov_gauge, degenerate = out.covariance(), 0
+    except GeometryError:
+        # Collinear within the noise (three anchors whose ranges do not close a triangle): the
+        # least-squares optimum is on the line and the information has a null direction. That
+        # is still the best fit, and the ranges bound the offset at second order: report it as
+        # ``degenerate`` with the profile likelihood's width there (raises if it is unbounded).
+        s = out.structure
+        cov_gauge, degenerate = degenerate_covariance(
+            x_gauge, s.column < s.n_free, out.information[:s.n_free, :s.n_free], problem.pairs[best.keep],
+            problem.dist[best.keep], out.weights, max_null=dim)
     if prior is None:
         # Re-apply the frame's sign rules to the solution (only axis flips here): the cost is
         # mirror-invariant, so the optimizer may have crossed to the other side.
@@ -704,7 +724,9 @@ def _finish(problem: _Problem, best: _Candidate, refs, prior, gauge, tried, ambi
     residuals = np.full(len(problem.pairs), np.nan)
     residuals[best.keep] = out.residuals
     keep = best.keep
-    if out.converged and best.fit_ok:
+    if degenerate:
+        status = "degenerate"
+    elif out.converged and best.fit_ok:
         status = "ok"
     else:
         status = "poor_fit" if out.converged else "not_converged"
@@ -718,8 +740,7 @@ def _finish(problem: _Problem, best: _Candidate, refs, prior, gauge, tried, ambi
         iterations=out.iterations,
         cost=out.cost,
         converged=status == "ok",
-        message=out.message if status != "poor_fit" else
-        f"converged to a poor fit: chi2 {best.chi2:.1f} on {best.dof} dof (p = {best.p_value:.2g})",
+        message=_status_message(status, out.message, best, degenerate),
         initializer=best.name,
         gauge_refs=refs,
         chi2=best.chi2,
@@ -731,6 +752,16 @@ def _finish(problem: _Problem, best: _Candidate, refs, prior, gauge, tried, ambi
         starts_tried=tried,
         ambiguous=ambiguous,
     )
+
+
+def _status_message(status: str, optimizer_message: str, best: _Candidate, null_directions: int) -> str:
+    if status == "poor_fit":
+        return f"converged to a poor fit: chi2 {best.chi2:.1f} on {best.dof} dof (p = {best.p_value:.2g})"
+    if status == "degenerate":
+        return (f"degenerate geometry: {null_directions} direction(s) of the shape fixed by the ranges only to "
+                f"second order (anchors collinear within the noise); the covariance there is the profile "
+                f"chi-square's one-sigma half-width")
+    return optimizer_message
 
 
 def _refs_for(name: str, start: np.ndarray, dim: int) -> tuple[int, ...]:
