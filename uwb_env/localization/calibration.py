@@ -48,7 +48,7 @@ from scipy.special import chdtrc, chdtri
 
 from uwb_env.localization.alignment import frame_refs, paper_frame, rigid_align
 from uwb_env.localization.buildup import buildup_starts
-from uwb_env.localization.degenerate import degenerate_covariance
+from uwb_env.localization.degenerate import degenerate_fit
 from uwb_env.localization.errors import (
     DisconnectedGraphError,
     GeometryError,
@@ -58,7 +58,7 @@ from uwb_env.localization.errors import (
 )
 from uwb_env.localization.pair_solver import PairStructure, pair_structure, solve_pair_ranges
 from uwb_env.localization.rigidity import generically_globally_rigid
-from uwb_env.localization.robust import check_loss
+from uwb_env.localization.robust import check_loss, robust_cost
 from uwb_env.measurements import NEGATIVE_RANGE_TOLERANCE_M, RangeMatrix, _pair_index
 
 GAUGES = ("anchor0", "prior")
@@ -242,11 +242,13 @@ def calibrate_anchors(
             # The lifted start crawled back towards the line: the ranges see collinear anchors.
             # The best of those fits is still the answer if the ranges bound the offsets from
             # the line at second order (``degenerate``); otherwise there is no shape to give.
+            # (Forced: a crawl can stop where the information is still just invertible.)
             best, _ = problem.select(candidates, None)
-            result = _finish(problem, best, refs, None, gauge, len(candidates), ambiguous=True)
-            if result.status != "degenerate":
-                raise GeometryError("anchors are collinear within the noise: the y axis is undefined")
-            return result
+            try:
+                return _finish(problem, best, refs, None, gauge, len(candidates), ambiguous=True, force_degenerate=True)
+            except GeometryError as err:
+                raise GeometryError(
+                    f"anchors are collinear within the noise: the y axis is undefined ({err})") from None
     else:
         refs = _gauge_refs(prior)
         candidates = [problem.solve(refs, prior, "prior")]
@@ -691,20 +693,28 @@ def _reflection_uncertain(positions: np.ndarray, covariance: np.ndarray, dim: in
     return bool(abs(total) < sigmas * math.sqrt(max(var, 0.0)))
 
 
-def _finish(problem: _Problem, best: _Candidate, refs, prior, gauge, tried, ambiguous=False) -> CalibrationResult:
+def _finish(problem: _Problem, best: _Candidate, refs, prior, gauge, tried, ambiguous=False,
+            force_degenerate=False) -> CalibrationResult:
+    """The result of ``best``; ``force_degenerate``: treat it as fixed only to second order along its
+    least-determined direction even if the information is (just) invertible."""
     n, dim = problem.n, problem.dim
     out, x_gauge = best.out, best.x
-    try:
-        cov_gauge, degenerate = out.covariance(), 0
-    except GeometryError:
+    cov_gauge = None if force_degenerate else _covariance_or_none(out)
+    degenerate = 0  # null directions
+    if cov_gauge is None:
         # Collinear within the noise (three anchors whose ranges do not close a triangle): the
         # least-squares optimum is on the line and the information has a null direction. That
         # is still the best fit, and the ranges bound the offset at second order: report it as
         # ``degenerate`` with the profile likelihood's width there (raises if it is unbounded).
-        s = out.structure
-        cov_gauge, degenerate = degenerate_covariance(
-            x_gauge, s.column < s.n_free, out.information[:s.n_free, :s.n_free], problem.pairs[best.keep],
-            problem.dist[best.keep], out.weights, max_null=dim)
+        s, keep = out.structure, best.keep
+        x_gauge, cov_gauge, degenerate = degenerate_fit(
+            x_gauge, s.column < s.n_free, out.information[:s.n_free, :s.n_free], problem.pairs[keep],
+            problem.dist[keep], out.weights, max_null=dim)
+        pairs = problem.pairs[keep]
+        residuals = np.linalg.norm(x_gauge[pairs[:, 0]] - x_gauge[pairs[:, 1]], axis=1) - problem.dist[keep]
+        z = residuals * np.sqrt(problem.inv_var[keep])
+        out = replace(out, positions=x_gauge, residuals=residuals, cost=robust_cost(z, problem.loss, problem.f_scale))
+        best = replace(best, x=x_gauge, out=out, chi2=float(z @ z), max_z=float(np.abs(z).max()))
     if prior is None:
         # Re-apply the frame's sign rules to the solution (only axis flips here): the cost is
         # mirror-invariant, so the optimizer may have crossed to the other side.
@@ -752,6 +762,13 @@ def _finish(problem: _Problem, best: _Candidate, refs, prior, gauge, tried, ambi
         starts_tried=tried,
         ambiguous=ambiguous,
     )
+
+
+def _covariance_or_none(out) -> np.ndarray | None:
+    try:
+        return out.covariance()
+    except GeometryError:
+        return None
 
 
 def _status_message(status: str, optimizer_message: str, best: _Candidate, null_directions: int) -> str:
