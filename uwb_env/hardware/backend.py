@@ -27,7 +27,7 @@ from uwb_env.config import ConfigBase, SimConfig
 from uwb_env.hardware.drivers import PansShellTagDriver, TiersAnchorDriver, TiersTagDriver
 from uwb_env.hardware.errors import HardwareError
 from uwb_env.hardware.pans_anchor import PansAnchorDriver, RoleSwitchCalibrator
-from uwb_env.hardware.tiers import unwrap_negative_means
+from uwb_env.hardware.tiers import firmware_pair_order, unwrap_negative_means
 from uwb_env.localization.errors import LocalizationError
 from uwb_env.measurements import RangeMatrix
 from uwb_env.sim.calibration_round import RoundTiming
@@ -63,14 +63,18 @@ class CalibrationFailed(LocalizationError):
 class HardwareRound:
     """A round running on the devices; the same surface as the simulator's round."""
 
-    def __init__(self, start_time_s: float, expected_s: float, n: int, initiators: tuple[int, ...] | None = None):
+    def __init__(self, start_time_s: float, expected_s: float, n: int, initiators: tuple[int, ...] | None = None,
+                 pairs: list[tuple[int, int]] | None = None):
         self.start_time_s = start_time_s
         self.end_time_s = start_time_s + expected_s
         self.expected_s = expected_s
         self.initiators = initiators  # None: a team round; (i,): anchor i re-located against the others
-        idx = np.arange(n) if initiators is None else np.asarray(initiators)
-        self.initiator = np.repeat(idx, n - 1)
-        self.responder = np.array([j for i in idx for j in range(n) if j != i])
+        if pairs is None:  # each initiator in turn, its responders in index order
+            idx = np.arange(n) if initiators is None else np.asarray(initiators)
+            pairs = [(int(i), j) for i in idx for j in range(n) if j != i]
+        # the ordered pairs in the order the devices range them (the links the renderer draws)
+        self.initiator = np.array([i for i, _ in pairs])
+        self.responder = np.array([j for _, j in pairs])
         self.done = False
         self.matrix: RangeMatrix | None = None
         self.error: str | None = None
@@ -183,6 +187,9 @@ class HardwareWorld(RoundRunner):
     def _poll_round(self) -> None:
         rnd = self.round
         rnd.elapsed_s = self.time_s - rnd.start_time_s
+        # A round still running holds the channel past the timing model's estimate (the
+        # firmware retries an unanswered poll after its 67 ms RX timeout): busy until done.
+        rnd.end_time_s = max(rnd.end_time_s, self.time_s)
         try:
             message = self.anchor.poll()
         except HardwareError as err:  # RoundFailed, or the port went away: a failed round, never stuck
@@ -262,7 +269,7 @@ class HardwareWorld(RoundRunner):
         if initiators is not None:
             raise ValueError("initiators: the TIERS firmware ranges every pair in one round; per-anchor rounds need "
                              "the all-PANS deployment (connect_pans, role switching)")
-        self.round = HardwareRound(self.time_s, self.timing.duration_s(n, k), n)
+        self.round = HardwareRound(self.time_s, self.timing.duration_s(n, k), n, pairs=firmware_pair_order(n))
         try:
             self.anchor.start_round()
         except HardwareError as err:  # e.g. the anchor's port is away: a failed round, reported in infos

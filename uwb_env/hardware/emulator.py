@@ -3,9 +3,10 @@
 A :class:`Scene` runs a simulator :class:`~uwb_env.sim.World` in wall-clock time (ground
 truth and the fitted range model). Devices are byte-level state machines:
 
-- :class:`TiersAnchorDevice`: anchor ID 1 of the TIERS firmware (banner; ``S`` starts a round
-  that takes as long as the timing model says; any other byte aborts it; the matrix of means
-  and population stds of K ranges per ordered pair, in truncated centimetres).
+- :class:`TiersAnchorDevice`: anchor ID 1 of the TIERS firmware (banner; ``S`` starts a round;
+  the ordered pairs are ranged one after the other in the firmware's order, each where the
+  robots are at that moment, a poll without an answer costing the initiator's RX timeout; the
+  matrix of means and population stds of K ranges per ordered pair, in truncated centimetres).
 - :class:`TiersTagDevice`: a tag of the TIERS localization build (banner, latched ``S``, one
   line per polling cycle, 255 bytes and the leaked partial sum of an anchor that times out).
 - :class:`PansAnchorDevice`: a stock-PANS anchor that can be switched to tag mode and back
@@ -36,7 +37,7 @@ import numpy as np
 from uwb_env.config import ConfigBase, SimConfig
 from uwb_env.hardware import tlv
 from uwb_env.hardware.pans_shell import AnchorRange, format_lec
-from uwb_env.hardware.tiers import BANNER_INIT, ROLE_SWAP, encode_matrix
+from uwb_env.hardware.tiers import BANNER_INIT, ROLE_SWAP, encode_matrix, firmware_pair_order
 from uwb_env.hardware.tiers_tag import encode_tag_line
 from uwb_env.sim import World
 
@@ -92,14 +93,15 @@ class Scene:
         with self.lock:
             return self.world.tags_true.copy()
 
-    def measure(self, a: np.ndarray, b: np.ndarray, k: int, unbiased: bool = False) -> np.ndarray:
+    def measure(self, a: np.ndarray, b: np.ndarray, k: int, unbiased: bool = False,
+                rng: np.random.Generator | None = None) -> np.ndarray:
         """k noisy ranges between points a and b (NaN for dropouts): with the fitted SS-TWR
         slope/offset bias of the TIERS firmware, or ``unbiased`` like antenna-delay calibrated
-        stock PANS firmware."""
+        stock PANS firmware. ``rng``: a device's own noise stream (default the scene's)."""
         d = np.full(k, float(np.linalg.norm(np.asarray(a) - np.asarray(b))))
         with self.lock:
             model = self.world.range_model
-            raw = model.measure(d, self.rng)
+            raw = model.measure(d, self.rng if rng is None else rng)
             return np.maximum(model.undo_linear_bias(raw), 0.0) if unbiased else raw
 
 
@@ -120,12 +122,26 @@ class TiersAnchorDevice:
     byte pauses it, a later ``S`` resumes it; an ``S`` during a round is absorbed: the flag is
     latched, there is no abort and no queue). At the end the matrix is printed, the firmware
     sleeps ``LAST_DELAY_MS`` (30 ms) and flushes its RX FIFO (input in that window is lost),
-    then prints ``Waiting for Start order``. ``round_s`` overrides the timing model's round
-    duration (tests); ``round_id_in_std`` writes the round's number (cm) into std[0, 1] so
-    tests can tell which round a matrix came from.
+    then prints ``Waiting for Start order``.
+
+    The round (``ss_init_main.c``) ranges the 12 ordered pairs one after the other in
+    :func:`~uwb_env.hardware.tiers.firmware_pair_order`, each with the anchors where the scene
+    has them when the pair starts (a moving team's pairs see different instants). A pair polls
+    until K answers have arrived: a poll without an answer (a dropout; every poll, beyond the
+    maximum range) holds the channel for the initiator's RX timeout, then the pair's result is
+    broadcast, which also ends in that timeout. Pair durations: K polls of the timing model's
+    exchange time plus one timeout, with the timeout taken as what makes the nominal round
+    ``timing.duration_s(4, K)`` (60 ms against the firmware's 66.7 ms: the measured 0.9 s /
+    2.5 s rounds at K = 5 / 50 both give it). A pair that gets no K answers within
+    ``MAX_POLLS_PER_PAIR`` hangs the round, as the firmware, which retries forever. The matrix
+    cells live across rounds (static RAM in the firmware), zero after a boot.
+
+    ``round_s`` overrides the nominal round duration (tests); ``round_id_in_std`` writes the
+    round's number (cm) into std[0, 1] so tests can tell which round a matrix came from.
     """
 
     SETTLE_S = 0.030  # LAST_DELAY_MS before app_uart_flush()
+    MAX_POLLS_PER_PAIR = 1000
 
     def __init__(self, scene: Scene, faults: Faults = Faults(), k: int | None = None, seed: int = 1,
                  round_s: float | None = None, round_id_in_std: bool = False):
@@ -134,6 +150,9 @@ class TiersAnchorDevice:
         self.scene, self.faults = scene, faults
         self.k = k or scene.config.calibration.measurements_per_pair
         self.rng = np.random.default_rng(seed)
+        # the round's range noise: its own stream, so that how many polls a round took (its
+        # retries) never shifts the noise the tags' ranges get from the scene's
+        self.range_rng = np.random.default_rng([seed, 1])
         self.round_s = round_s
         self.round_id_in_std = round_id_in_std
         self.out = bytearray((BANNER_INIT + "\r\n").encode())
@@ -143,12 +162,20 @@ class TiersAnchorDevice:
         self._last = None
         self._settle_until: float | None = None
         self._swap_sent = False
+        self._pairs = firmware_pair_order()
+        self._pair = 0  # next pair to range
+        self._pair_start_s = 0.0  # round progress at which it starts
+        self.pair_log: list[tuple[int, int, float]] = []  # (initiator, responder, round progress) ranged
         self.rounds = 0  # rounds started
         self.inputs_lost = 0  # bytes thrown away by the end-of-round flush
+        self._mean = np.zeros((4, 4))
+        self._std = np.zeros((4, 4))
 
     def reboot(self) -> None:
-        """USB power cycle: the round in progress is gone; the boot banner is printed."""
+        """USB power cycle: the round in progress is gone, the matrix's RAM cleared; the boot
+        banner is printed."""
         self._running, self._settle_until, self._flag = False, None, b"0"
+        self._mean, self._std = np.zeros((4, 4)), np.zeros((4, 4))
         self.out = bytearray((BANNER_INIT + "\r\n").encode())
 
     def receive(self, data: bytes, now: float) -> None:
@@ -161,11 +188,37 @@ class TiersAnchorDevice:
         self._flag = data[-1:]  # one byte per loop iteration: the last one read wins
         if self._flag == b"S" and not self._running:
             self._running, self._progress_s, self._swap_sent = True, 0.0, False
+            self._pair, self._pair_start_s = 0, 0.0
             self.rounds += 1
 
-    def _duration(self) -> float:
-        nominal = self.round_s if self.round_s is not None else self.scene.world.timing.duration_s(4, self.k)
-        return nominal * self.faults.round_slowdown
+    def _pair_timing(self) -> tuple[float, float]:
+        """(one answered poll, the RX timeout) in seconds of round progress."""
+        timing = self.scene.world.timing
+        nominal = self.round_s if self.round_s is not None else timing.duration_s(4, self.k)
+        slot = nominal * self.faults.round_slowdown / len(self._pairs)
+        poll = min(timing.exchange_s * self.faults.round_slowdown, 0.5 * slot / self.k)
+        return poll, slot - self.k * poll
+
+    def _range_pair(self, i: int, j: int) -> float:
+        """Range pair (i, j) now: store its mean and population std; return how long it holds
+        the channel (inf: it never gets K answers, the round hangs)."""
+        pos = self.scene.anchors_true()
+        answers: list[float] = []
+        unanswered = 0
+        while len(answers) < self.k:
+            if len(answers) + unanswered >= self.MAX_POLLS_PER_PAIR:
+                return np.inf
+            for r in self.scene.measure(pos[i], pos[j], self.k, rng=self.range_rng).tolist():
+                if len(answers) == self.k:
+                    break
+                if np.isfinite(r):
+                    answers.append(r)
+                else:
+                    unanswered += 1
+        got = np.array(answers)
+        self._mean[i, j], self._std[i, j] = got.mean(), got.std()  # population std, as the firmware
+        poll_s, timeout_s = self._pair_timing()
+        return self.k * poll_s + unanswered * timeout_s + timeout_s
 
     def _advance(self, now: float) -> None:
         if self._running and self._flag == b"S" and self._last is not None:
@@ -180,29 +233,24 @@ class TiersAnchorDevice:
         if self._settle_until is not None and now >= self._settle_until:
             self._settle_until, self._flag = None, b"0"
             self.out += b"Waiting for Start order\r\n"
-        if self._running:
-            duration = self._duration()
-            if not self._swap_sent and self._progress_s > duration / 4:
-                self.out += (ROLE_SWAP + "\r\n").encode()
-                self._swap_sent = True
-            if self._progress_s >= duration:
+        while self._running and self._progress_s >= self._pair_start_s:
+            if self._pair == len(self._pairs):  # the last pair's broadcast timed out: print
                 self.out += self._matrix()
                 self._running = False
                 self._settle_until = now + self.SETTLE_S
+                break
+            initiator, responder = self._pairs[self._pair]
+            if initiator != 0 and not self._swap_sent:  # ID 1's pairs done: it becomes a responder
+                self.out += (ROLE_SWAP + "\r\n").encode()
+                self._swap_sent = True
+            self.pair_log.append((initiator, responder, self._pair_start_s))
+            self._pair_start_s += self._range_pair(initiator, responder)
+            self._pair += 1
         data, self.out = bytes(self.out), bytearray()
         return _apply_faults(data, self.faults, self.rng)
 
     def _matrix(self) -> bytes:
-        pos = self.scene.anchors_true()
-        mean = np.zeros((4, 4))
-        std = np.zeros((4, 4))
-        for i in range(4):
-            for j in range(4):
-                if i != j:
-                    r = self.scene.measure(pos[i], pos[j], self.k)
-                    r = r[np.isfinite(r)]
-                    if len(r):
-                        mean[i, j], std[i, j] = r.mean(), r.std()  # population std, as the firmware
+        mean, std = self._mean.copy(), self._std.copy()
         if self.round_id_in_std:
             std[0, 1] = self.rounds / 100.0
         text = encode_matrix(mean, std).split(b" Waiting for Start order")[0]  # printed after the flush

@@ -1,0 +1,138 @@
+"""The emulated TIERS anchor ranges its pairs the way ``Autocalibration/*/ss_init_main.c`` does:
+in the firmware's counter-clockwise order, one pair after the other through the round (a moving
+team's pairs see different instants), a poll without an answer holding the channel for the
+initiator's RX timeout. The order below is copied from the firmware source, not from our code."""
+
+import numpy as np
+import pytest
+
+from uwb_env.config import SimConfig
+from uwb_env.hardware.emulator import TiersAnchorDevice
+from uwb_env.hardware.tiers import RX_TIMEOUT_S, RangeMatrixMessage, TiersDecoder, firmware_pair_order
+from uwb_env.sim.calibration_round import RoundTiming
+
+# ss_init_main.c: "Set the target responder in counter-clockwise order", IDs 1-based
+FIRMWARE_ORDER_IDS = [(1, 4), (1, 3), (1, 2), (2, 1), (2, 4), (2, 3), (3, 2), (3, 1), (3, 4), (4, 3), (4, 2), (4, 1)]
+
+
+class _World:
+    def __init__(self, config):
+        self.timing = RoundTiming.fit(config.calibration)
+
+
+class _MovingScene:
+    """Anchor 1 drives along +y at ``speed`` m/s from t = 0 (the device's clock); noise-free
+    ranges, a poll unanswered with probability ``dropout``."""
+
+    def __init__(self, speed=0.0, dropout=0.0, seed=0):
+        self.config = SimConfig()
+        self.world = _World(self.config)
+        self.speed, self.dropout = speed, dropout
+        self.rng = np.random.default_rng(seed)
+        self.now = 0.0
+        self.calls = 0
+
+    def anchors_true(self):
+        return np.array([[0.0, 0.0], [4.0, self.speed * self.now], [4.0, 4.0], [0.0, 4.0]])
+
+    def measure(self, a, b, k, unbiased=False, rng=None):
+        self.calls += k
+        d = np.full(k, float(np.linalg.norm(np.asarray(a) - np.asarray(b))))
+        d[self.rng.random(k) < self.dropout] = np.nan
+        return d
+
+
+def _run_round(scene, device, tick_s=0.002, limit_s=30.0):
+    """Send S, poll every tick until the matrix is printed; returns (matrix, seconds)."""
+    device.receive(b"S", 0.0)
+    out = b""
+    t = 0.0
+    while t < limit_s:
+        t += tick_s
+        scene.now = t
+        out += device.poll(t)
+        found = [m for m in TiersDecoder().feed(out) if isinstance(m, RangeMatrixMessage)]
+        if found:
+            return found[0], t
+    raise AssertionError("no matrix")
+
+
+def test_pairs_are_ranged_in_the_firmware_order_at_evenly_spaced_moments():
+    assert [(i + 1, j + 1) for i, j in firmware_pair_order()] == FIRMWARE_ORDER_IDS
+    scene = _MovingScene()
+    device = TiersAnchorDevice(scene, k=5)
+    _, seconds = _run_round(scene, device)
+    nominal = RoundTiming.fit(scene.config.calibration).duration_s(4, 5)
+    assert [(i + 1, j + 1) for i, j, _ in device.pair_log] == FIRMWARE_ORDER_IDS
+    starts = np.array([t for _, _, t in device.pair_log])
+    assert np.allclose(starts, np.arange(12) * nominal / 12)
+    assert seconds == pytest.approx(nominal, abs=0.005)
+    # the timeout that spaces the pairs is near the firmware's RX timeout (60 ms vs 66.7 ms): the two
+    # measured round lengths (K = 5 and 50) both give it
+    poll_s, timeout_s = device._pair_timing()
+    assert timeout_s == pytest.approx(RX_TIMEOUT_S, rel=0.15)
+
+
+def test_a_moving_anchor_is_ranged_where_it_is_when_its_pair_comes_up():
+    """Anchor 1 (ID 2) moves at 1 m/s. ID 1 ranges it in the third slot, ID 2 ranges ID 1 in
+    the fourth, ID 3 ranges ID 2 in the seventh, ID 4 ranges ID 2 in the eleventh: the four
+    cells hold four different distances, each the one at its pair's moment (the old emulator
+    ranged every pair at the round's end)."""
+    scene = _MovingScene(speed=1.0)
+    device = TiersAnchorDevice(scene, k=5)
+    matrix, seconds = _run_round(scene, device)
+    mean = matrix.mean_m
+    start = {(i, j): t for i, j, t in device.pair_log}
+
+    def dist(i, j, t):
+        scene.now = t
+        p = scene.anchors_true()
+        return np.linalg.norm(p[i] - p[j])
+
+    for i, j in ((0, 1), (1, 0), (2, 1), (3, 1)):
+        assert mean[i, j] == pytest.approx(dist(i, j, start[i, j]), abs=0.011)  # cm truncation + one tick
+    assert mean[3, 1] - mean[0, 1] > 0.5  # the end of the round is 0.6 m further on for ID 4
+
+
+def test_unanswered_polls_cost_the_rx_timeout_and_every_cell_averages_k_answers():
+    scene = _MovingScene(dropout=0.3, seed=4)
+    device = TiersAnchorDevice(scene, k=5)
+    _, seconds = _run_round(scene, device)
+    nominal = RoundTiming.fit(scene.config.calibration).duration_s(4, 5)
+    _, timeout_s = device._pair_timing()
+    # 60 answers at 30 % loss: about 26 unanswered polls, each a timeout: ~2.5 s instead of 0.9
+    assert seconds > nominal + 10 * timeout_s
+    starts = np.diff([t for _, _, t in device.pair_log])
+    assert np.all(starts >= nominal / 12 - 1e-9)
+    assert np.all(np.isclose((starts - nominal / 12) / timeout_s, np.round((starts - nominal / 12) / timeout_s)))
+
+
+def test_a_pair_out_of_range_hangs_the_round_as_the_firmware_retries_forever():
+    scene = _MovingScene(dropout=1.0)
+    device = TiersAnchorDevice(scene, k=5)
+    device.receive(b"S", 0.0)
+    out = b"".join(device.poll(t) for t in np.arange(0.002, 5.0, 0.002))
+    assert not [m for m in TiersDecoder().feed(out) if isinstance(m, RangeMatrixMessage)]
+    assert len(device.pair_log) == 1  # stuck on the first pair
+
+
+def test_a_hardware_round_running_past_its_estimate_holds_the_channel_until_it_ends():
+    """Retries make real rounds longer than the timing model's estimate; the backend used to end
+    the busy time at the estimate, so the step after it got a negative busy fraction (and the
+    env a positive reward)."""
+    from uwb_env.hardware.backend import HardwareRound, HardwareWorld
+    from uwb_env.sim.calibration_round import busy_fraction
+
+    class _Silent:
+        def poll(self):
+            return None  # the matrix has not arrived yet
+
+    world = HardwareWorld.__new__(HardwareWorld)
+    world.round = HardwareRound(0.0, 0.9, 4, pairs=firmware_pair_order())
+    world.anchor, world.role_switching = _Silent(), False
+    for step in range(1, 8):  # 0.2 s steps: the estimate ends in step 5
+        world.time_s = 0.2 * step
+        world._poll_round()
+        assert busy_fraction(world.round, world.time_s - 0.2, world.time_s, 0.2) == pytest.approx(1.0)
+    assert [(i + 1, j + 1) for i, j in zip(world.round.initiator, world.round.responder, strict=True)] \
+        == FIRMWARE_ORDER_IDS
