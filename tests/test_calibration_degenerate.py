@@ -2,9 +2,10 @@
 that holds, not raised (issue 13: 7 % of thin 3-anchor first calibrations raised)."""
 
 import numpy as np
+import pytest
 from scipy.optimize import least_squares
 
-from uwb_env.localization import calibrate_anchors, crlb_anchors, paper_frame
+from uwb_env.localization import GeometryError, calibrate_anchors, crlb_anchors, paper_frame
 from uwb_env.localization.calibration import default_range_std_m
 from uwb_env.measurements import RangeMatrix
 
@@ -93,3 +94,44 @@ def test_thin_three_anchor_rounds_never_raise_and_their_covariance_holds():
     assert above_optimum == 0
     assert max(ratios) < 10.0
     assert 0.6 < np.mean(nees) < 1.6, np.mean(nees)
+
+
+def _review_round(mean, k):
+    mean = np.array(mean, dtype=float)
+    count = np.full((3, 3), k) - k * np.eye(3, dtype=int)
+    return RangeMatrix(mean, np.full((3, 3), default_range_std_m()), count)
+
+
+@pytest.mark.parametrize("mean, k", [
+    # a review's rounds: the first stopped 6 m off the line (chi-square 29.65 against 3.25 on
+    # it), the second 5 m off (1.64 against 0.094); the third raised "flexible layout"
+    ([[np.nan, 1.682847, 27.811797], [1.679197, np.nan, 29.507211], [27.799473, 29.502785, np.nan]], 50),
+    ([[np.nan, 1.24234214, 23.27352634], [1.24381954, np.nan, 22.0166136], [23.25178104, 22.00280925, np.nan]], 5),
+    ([[np.nan, 0.23114, 19.11036], [0.24441, np.nan, 19.35046], [19.11958, 19.358, np.nan]], 50),
+])
+def test_the_degenerate_fit_reaches_the_exact_optimum_however_far_the_solver_stopped(mean, k):
+    """Three ranges whose triangle does not close: the least-squares optimum puts the anchors on
+    a line, with chi-square gap^2 / (sum of the three pair variances), gap = longest minus the
+    other two (an exact result, independent of any solver)."""
+    res = calibrate_anchors(_review_round(mean, k))
+    d = np.array(mean)
+    d = (d + d.T) / 2
+    side = np.sort([d[0, 1], d[0, 2], d[1, 2]])
+    exact = (side[2] - side[0] - side[1]) ** 2 / (3 * default_range_std_m() ** 2 / (2 * k))
+    assert res.status == "degenerate"
+    assert res.chi2 == pytest.approx(exact, rel=1e-6, abs=1e-9)
+
+
+@pytest.mark.parametrize("truth, pairs", [
+    ([[0, 0], [7, 0], [3, 4], [2, 1]], [(0, 1), (0, 2), (1, 2), (2, 3)]),  # anchor 3 hangs off anchor 2
+    ([[0, 0], [7, 0], [8, 5], [1, 4]], [(0, 1), (1, 2), (2, 3), (3, 0)]),  # a four-bar linkage
+])
+def test_a_flexible_graph_is_no_degenerate_shape_but_an_error(truth, pairs):
+    """Exact fits forming a continuum are not "collinear within the noise": a review found them
+    returned as degenerate with a covariance of how far the linkage moves."""
+    x = np.array(truth, dtype=float)
+    d = np.full((4, 4), np.nan)
+    for i, j in pairs:
+        d[i, j] = d[j, i] = np.linalg.norm(x[i] - x[j])
+    with pytest.raises(GeometryError, match="rigid"):
+        calibrate_anchors(d, range_std_m=0.05)

@@ -100,3 +100,14 @@ def test_buildup_keeps_tied_mirror_choices(case):
     starts = buildup_starts(full, weight, 3, tol_m=3 * 0.05 / np.sqrt(10))
     assert starts and len(x) == n
     assert min(aligned_errors(s, x).max() for s in starts) < 1e-6
+
+
+def test_generic_rigidity_of_small_graphs():
+    from uwb_env.localization.rigidity import generically_rigid
+
+    k4 = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
+    assert generically_rigid(np.array(k4), 4, 2)
+    assert not generically_rigid(np.array([(0, 1), (0, 2), (1, 2), (2, 3)]), 4, 2)  # a pendant anchor
+    assert not generically_rigid(np.array([(0, 1), (1, 2), (2, 3), (3, 0)]), 4, 2)  # a four-bar linkage
+    assert generically_rigid(np.array(k4[:5]), 4, 2)  # one diagonal missing: rigid, not globally
+    assert generically_rigid(np.array(k4), 4, 3) and not generically_rigid(np.array(k4[:5]), 4, 3)

@@ -57,7 +57,7 @@ from uwb_env.localization.errors import (
     TooFewAnchorsError,
 )
 from uwb_env.localization.pair_solver import PairStructure, pair_structure, solve_pair_ranges
-from uwb_env.localization.rigidity import generically_globally_rigid
+from uwb_env.localization.rigidity import generically_globally_rigid, generically_rigid
 from uwb_env.localization.robust import check_loss, robust_cost
 from uwb_env.measurements import NEGATIVE_RANGE_TOLERANCE_M, RangeMatrix, _pair_index
 
@@ -707,9 +707,16 @@ def _finish(problem: _Problem, best: _Candidate, refs, prior, gauge, tried, ambi
         # is still the best fit, and the ranges bound the offset at second order: report it as
         # ``degenerate`` with the profile likelihood's width there (raises if it is unbounded).
         s, keep = out.structure, best.keep
+        if not generically_rigid(problem.pairs[keep], n, dim):
+            # a flexible graph (an anchor hanging off one other, a four-bar linkage): its exact
+            # fits form a continuum, bounded or not; no shape to report
+            raise GeometryError("degenerate anchor geometry: the measured pairs do not make a rigid shape "
+                                "(collinear / coplanar anchors, or too few pairs for a rigid shape)")
+        # One null direction only: with two or more (four anchors on a line) the null space's
+        # basis is arbitrary and one-sigma points along it were 2-30x too narrow (review).
         x_gauge, cov_gauge, degenerate = degenerate_fit(
             x_gauge, s.column < s.n_free, out.information[:s.n_free, :s.n_free], problem.pairs[keep],
-            problem.dist[keep], out.weights, max_null=dim)
+            problem.dist[keep], out.weights, max_null=1)
         pairs = problem.pairs[keep]
         residuals = np.linalg.norm(x_gauge[pairs[:, 0]] - x_gauge[pairs[:, 1]], axis=1) - problem.dist[keep]
         z = residuals * np.sqrt(problem.inv_var[keep])

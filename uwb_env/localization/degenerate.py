@@ -133,16 +133,23 @@ def _profile_minimum(positions, free, x0, null_basis, v, pairs, dist, weights, s
     value, offset = _profile(positions, free, x0, null_basis, 0.0, pairs, dist, weights, zero)
     if value < _chi2_and_jacobian(positions, free, x0, pairs, dist, weights)[0]:
         x0 = x0 + offset
-    base = _chi2_and_jacobian(positions, free, x0, pairs, dist, weights)[0]
-    reach = 1e-3 * scale
-    while reach < scale and _profile(positions, free, x0, v, reach, pairs, dist, weights, zero)[0] < base + 1.0 \
-            and _profile(positions, free, x0, v, -reach, pairs, dist, weights, zero)[0] < base + 1.0:
-        reach *= 2.0
-    found = minimize_scalar(lambda t: _profile(positions, free, x0, v, t, pairs, dist, weights, zero)[0],
-                            bounds=(-reach, reach), method="bounded", options={"xatol": 1e-9 * scale})
-    if found.fun < base:
-        value, offset = _profile(positions, free, x0, v, found.x, pairs, dist, weights, zero)
-        x0 = x0 + found.x * v + offset
+
+    def profile(t: float) -> float:
+        return _profile(positions, free, x0, v, t, pairs, dist, weights, zero)[0]
+
+    # The minimum can be metres away (a K = 50 round stopped 6 m off the line, chi-square 29.7
+    # against 3.3 there): scan a geometric grid over the scene's size both ways, then refine
+    # between the best grid point's neighbours.
+    steps = scale * np.logspace(-4, 0, 29)
+    grid = np.concatenate([-steps[::-1], [0.0], steps])
+    values = np.array([profile(t) for t in grid])
+    k = int(np.argmin(values))
+    found = minimize_scalar(profile, bounds=(grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]), method="bounded",
+                            options={"xatol": 1e-9 * scale})
+    t, value = (found.x, found.fun) if found.fun < values[k] else (grid[k], values[k])
+    if value < values[len(steps)]:
+        _, offset = _profile(positions, free, x0, v, t, pairs, dist, weights, zero)
+        x0 = x0 + t * v + offset
     return x0
 
 

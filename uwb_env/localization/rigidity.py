@@ -15,6 +15,24 @@ from __future__ import annotations
 import numpy as np
 
 
+def generically_rigid(pairs: np.ndarray, n: int, dim: int, seed: int = 0) -> bool:
+    """True when the graph is (infinitesimally) rigid in ``dim`` dimensions for generic anchor
+    positions: the rigidity matrix at random positions has rank n*dim - dim(dim+1)/2 (for
+    n <= dim + 1: every pair measured). A flexible graph's shapes form a continuum."""
+    pairs = np.asarray(pairs, dtype=int).reshape(-1, 2)
+    pairs = np.unique(np.sort(pairs[pairs[:, 0] != pairs[:, 1]], axis=1), axis=0)
+    if n <= dim + 1:
+        return len(pairs) == n * (n - 1) // 2
+    p = np.random.default_rng(seed).standard_normal((n, dim))
+    i, j = pairs[:, 0], pairs[:, 1]
+    rigidity = np.zeros((len(pairs), n, dim))
+    rows = np.arange(len(pairs))
+    rigidity[rows, i] = p[i] - p[j]
+    rigidity[rows, j] = p[j] - p[i]
+    rank = np.linalg.matrix_rank(rigidity.reshape(len(pairs), n * dim), tol=1e-9)
+    return bool(rank == n * dim - dim * (dim + 1) // 2)
+
+
 def generically_globally_rigid(pairs: np.ndarray, n: int, dim: int, seed: int = 0) -> bool:
     """True when the graph (``pairs``: (m, 2) anchor indices) has one realization in ``dim``
     dimensions up to rotation, translation and reflection, for generic anchor positions."""
