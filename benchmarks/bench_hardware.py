@@ -60,6 +60,9 @@ def round_time(k: int, rounds: int) -> tuple[float, float]:
         url = emu.add("anchor", TiersAnchorDevice(scene, k=k))
         with SerialTransport(url) as port:
             driver = TiersAnchorDriver(port, round_timeout_s=10)
+            # let the board's boot banner arrive first: a banner read after the first S now
+            # (rightly) fails that round as a reboot
+            time.sleep(0.3)
             times = []
             for _ in range(rounds):
                 t = time.perf_counter()

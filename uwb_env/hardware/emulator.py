@@ -129,10 +129,12 @@ class TiersAnchorDevice:
     has them when the pair starts (a moving team's pairs see different instants). A pair polls
     until K answers have arrived: a poll without an answer (a dropout; every poll, beyond the
     maximum range) holds the channel for the initiator's RX timeout, then the pair's result is
-    broadcast, which also ends in that timeout. Pair durations: K polls of the timing model's
-    exchange time plus one timeout, with the timeout taken as what makes the nominal round
+    broadcast, which also ends in that timeout. Pair durations: K answered polls plus one
+    timeout plus one per unanswered poll, with the timeout taken as what makes the nominal round
     ``timing.duration_s(4, K)`` (60 ms against the firmware's 66.7 ms: the measured 0.9 s /
-    2.5 s rounds at K = 5 / 50 both give it). A pair that gets no K answers within
+    2.5 s rounds at K = 5 / 50 both give it), and the answered poll as the fitted exchange time
+    less its expected share of retries (the measured rounds include them: 1.7 ms of 3.0 ms at
+    the default 2 % dropout), so rounds last the nominal time on average. A pair that gets no K answers within
     ``MAX_POLLS_PER_PAIR`` hangs the round, as the firmware, which retries forever. The matrix
     cells live across rounds (static RAM in the firmware), zero after a boot.
 
@@ -197,7 +199,14 @@ class TiersAnchorDevice:
         nominal = self.round_s if self.round_s is not None else timing.duration_s(4, self.k)
         slot = nominal * self.faults.round_slowdown / len(self._pairs)
         poll = min(timing.exchange_s * self.faults.round_slowdown, 0.5 * slot / self.k)
-        return poll, slot - self.k * poll
+        timeout = slot - self.k * poll
+        # The measured round lengths the timing model is fitted to include the firmware's
+        # retries: its "exchange" is an answered poll plus its share of unanswered ones, q per
+        # answer at the range model's dropout rate, each a timeout. So the expected round is the
+        # nominal one (0.9 s / 2.5 s at K = 5 / 50), not that plus retries (2.5 -> 3.6 s).
+        p = self.scene.config.ranging.dropout_probability
+        q = p / (1.0 - p) if p < 1.0 else 0.0
+        return max(poll - q * timeout, 0.0), timeout
 
     def _range_pair(self, i: int, j: int) -> float:
         """Range pair (i, j) now: store its mean and population std; return how long it holds
