@@ -134,9 +134,10 @@ class TiersAnchorDevice:
     ``timing.duration_s(4, K)`` (60 ms against the firmware's 66.7 ms: the measured 0.9 s /
     2.5 s rounds at K = 5 / 50 both give it), and the answered poll as the fitted exchange time
     less its expected share of retries (the measured rounds include them: 1.7 ms of 3.0 ms at
-    the default 2 % dropout), so rounds last the nominal time on average. A pair that gets no K answers within
-    ``MAX_POLLS_PER_PAIR`` hangs the round, as the firmware, which retries forever. The matrix
-    cells live across rounds (static RAM in the firmware), zero after a boot.
+    the default 2 % dropout), so rounds last the nominal time on average. A pair that gets no
+    K answers within ``MAX_POLLS_PER_PAIR`` hangs the round, as the firmware, which retries
+    forever. The matrix cells live across rounds (static RAM in the firmware), zero after a
+    boot.
 
     ``round_s`` overrides the nominal round duration (tests); ``round_id_in_std`` writes the
     round's number (cm) into std[0, 1] so tests can tell which round a matrix came from.

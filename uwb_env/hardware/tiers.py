@@ -23,20 +23,6 @@ import numpy as np
 from uwb_env.hardware.errors import ParseError
 
 START = b"S"
-# The initiator's RX timeout (``dwt_setrxtimeout(65000)`` UUS, 1 UUS = 512/499.2 us): how long a
-# poll that gets no answer, and the broadcast of a pair's result (sent expecting a response
-# that never comes), hold the channel.
-RX_TIMEOUT_S = 65000 * 512 / 499.2e6
-
-
-def firmware_pair_order(n: int = 4) -> list[tuple[int, int]]:
-    """The ordered pairs (initiator, responder), 0-based, in the order a round ranges them.
-
-    ``Autocalibration/*/ss_init_main.c``: anchors are initiators in ID order; initiator ID i
-    polls the responders "in counter-clockwise order" i-1, i-2, i-3 (mod 4: ID 1 -> 4, 3, 2;
-    ID 2 -> 1, 4, 3; ID 3 -> 2, 1, 4; ID 4 -> 3, 2, 1), each until MAX_ITER answers have
-    arrived, then broadcasts that pair's mean and std (``F`` frame) and moves on."""
-    return [(i, (i - s) % n) for i in range(n) for s in range(1, n)]
 N_DEVICES = 4  # the firmware hard-wires a 4x4 matrix
 BANNER_INIT = "Singled Sided Two Way Ranging INIT"
 BANNER_RESP = "Singled Sided Two Way Ranging RESP"
@@ -44,6 +30,21 @@ ROLE_SWAP = "responder becomes initiator and viceversa"
 WAITING = "Waiting for Start order"
 _ROW = re.compile(r"^\s*(?:\d{1,3}\s*,\s*){16}$")
 _ROWISH = re.compile(r"^[\s\d,]*\d[\s\d,]*$")  # digits, commas, spaces only: a (maybe broken) row
+
+# The initiator's RX timeout (``dwt_setrxtimeout(65000)`` UUS, 1 UUS = 512/499.2 us): how long a
+# poll that gets no answer, and the broadcast of a pair's result (sent expecting a response
+# that never comes), hold the channel.
+RX_TIMEOUT_S = 65000 * 512 / 499.2e6
+
+
+def firmware_pair_order(n: int = N_DEVICES) -> list[tuple[int, int]]:
+    """The ordered pairs (initiator, responder), 0-based, in the order a round ranges them.
+
+    ``Autocalibration/*/ss_init_main.c``: anchors are initiators in ID order; initiator ID i
+    polls the responders "in counter-clockwise order" i-1, i-2, i-3 (mod 4: ID 1 -> 4, 3, 2;
+    ID 2 -> 1, 4, 3; ID 3 -> 2, 1, 4; ID 4 -> 3, 2, 1), each until MAX_ITER answers have
+    arrived, then broadcasts that pair's mean and std (``F`` frame) and moves on."""
+    return [(i, (i - s) % n) for i in range(n) for s in range(1, n)]
 
 
 @dataclass(frozen=True)

@@ -94,9 +94,9 @@ class CalibrationResult:
         status: ``ok``; ``poor_fit`` (converged, but the residuals are larger than the noise
             explains at ``fit_alpha``: a folded shape, outliers or a wrong noise model);
             ``not_converged`` (iteration limit or no decrease); ``degenerate`` (the best fit
-            leaves up to ``dim`` directions fixed only to second order, e.g. three anchors
-            collinear within the noise: their covariance is the profile chi-square's one-sigma
-            half-width, see ``localization.degenerate``; not a shape to apply without care).
+            leaves one direction fixed only to second order, e.g. three anchors collinear
+            within the noise: its covariance there comes from the profile chi-square's one-sigma
+            points, see ``localization.degenerate``; not a shape to apply without care).
         optimizer_converged: the optimizer's own verdict, whatever the fit.
         rejected_pairs: (R, 2) pairs left out as outliers (robust mode), empty otherwise.
         starts_tried: number of starts solved.

@@ -6,7 +6,7 @@ optimum on the line. The third anchor's offset from the line then changes every 
 quadratically: the information J^T W J has a null direction and no inverse, yet the answer is
 the best fit and the data do bound the offset (the chi-square rises with its fourth power).
 Raising on such a round threw away an estimate within a few Cramer-Rao bounds of the truth
-(thin 3-anchor layouts: 7 % of first calibrations raised, their fits 0.1-3.7x the bound).
+(thin 3-anchor layouts: 7 % of first calibrations raised, their fits 0.1-4.4x the bound).
 
 Along each such direction this module follows the *profile* chi-square (every other free
 coordinate re-fitted by Gauss-Newton) to the points on either side where it has risen by one,
@@ -37,9 +37,9 @@ def degenerate_fit(positions: np.ndarray, free: np.ndarray, information: np.ndar
     the number of null directions.
 
     The solver stops an iteration-capped crawl towards the line (Newton steps along a quartic
-    direction shrink geometrically): there the other coordinates are a little off their optimum
-    too (chi-square up to ~0.02 above it in 3-anchor rounds). Gauss-Newton over the
-    complement of the null directions, which is well conditioned, brings them back.
+    direction shrink geometrically), up to metres short of the optimum, with the other
+    coordinates off theirs too: the fit is moved to the profile's minimum first
+    (:func:`_profile_minimum`).
 
     Args:
         free: (n*dim,) mask of the estimated coordinates (the gauge's are fixed: zero rows).
@@ -127,8 +127,8 @@ def _profile(positions, free, x0, v, t, pairs, dist, weights, z_start) -> tuple[
 
 def _profile_minimum(positions, free, x0, null_basis, v, pairs, dist, weights, scale) -> np.ndarray:
     """x0 moved to the profile chi-square's minimum along v: the complement re-fitted with
-    every null direction held, then a bounded 1-D search along v (the solver's crawl can stop
-    short of the line, where the profile still falls: chi-square up to 0.2 above it)."""
+    every null direction held, then a search along v (the solver's crawl can stop short of the
+    line, where the profile still falls: chi-square up to 26 above it at K = 50)."""
     zero = np.zeros_like(x0)
     value, offset = _profile(positions, free, x0, null_basis, 0.0, pairs, dist, weights, zero)
     if value < _chi2_and_jacobian(positions, free, x0, pairs, dist, weights)[0]:
