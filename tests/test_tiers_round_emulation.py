@@ -109,6 +109,19 @@ def test_unanswered_polls_cost_the_rx_timeout_and_every_cell_averages_k_answers(
     assert np.all(np.isclose((lengths - base) / timeout_s, np.round((lengths - base) / timeout_s)))
 
 
+def test_the_pair_timing_is_the_same_timeout_at_k_5_and_50():
+    """Both measured round lengths give the same per-pair timeout (60 ms, the firmware's 66.7 ms
+    RX timeout within 10 %) and the same answered poll: a clamp once left K = 50 with a 104 ms
+    timeout and 0 ms polls (review)."""
+    timings = []
+    for k in (5, 50):
+        scene = _MovingScene(dropout=0.02)
+        timings.append(TiersAnchorDevice(scene, k=k)._pair_timing())
+    (poll5, timeout5), (poll50, timeout50) = timings
+    assert timeout5 == pytest.approx(timeout50, rel=1e-9) and poll5 == pytest.approx(poll50, rel=1e-9)
+    assert timeout5 == pytest.approx(RX_TIMEOUT_S, rel=0.1) and 1e-3 < poll5 < 3e-3
+
+
 def test_rounds_last_the_measured_time_on_average_with_the_default_dropouts():
     """The fitted round lengths (0.9 s at K = 5, 2.5 s at K = 50) are measured totals, retries
     included: at the default 2 % dropout the emulated rounds average them (not 2.5 + retries)."""

@@ -199,8 +199,10 @@ class TiersAnchorDevice:
         timing = self.scene.world.timing
         nominal = self.round_s if self.round_s is not None else timing.duration_s(4, self.k)
         slot = nominal * self.faults.round_slowdown / len(self._pairs)
-        poll = min(timing.exchange_s * self.faults.round_slowdown, 0.5 * slot / self.k)
-        timeout = slot - self.k * poll
+        poll = timing.exchange_s * self.faults.round_slowdown
+        timeout = slot - self.k * poll  # handoff_s / 3 = 60 ms at every K for the fitted model
+        if timeout < 0.1 * slot:  # a round_s override shorter than the polls (tests): split the slot
+            poll, timeout = 0.5 * slot / self.k, 0.5 * slot
         # The measured round lengths the timing model is fitted to include the firmware's
         # retries: its "exchange" is an answered poll plus its share of unanswered ones, q per
         # answer at the range model's dropout rate, each a timeout. So the expected round is the
