@@ -135,3 +135,16 @@ def test_a_flexible_graph_is_no_degenerate_shape_but_an_error(truth, pairs):
         d[i, j] = d[j, i] = np.linalg.norm(x[i] - x[j])
     with pytest.raises(GeometryError, match="rigid"):
         calibrate_anchors(d, range_std_m=0.05)
+
+
+@pytest.mark.parametrize("mean", [
+    [[np.nan, 14.69916, 14.6331], [14.72771, np.nan, 0.06053], [14.62455, 0.07351, np.nan]],
+    [[np.nan, 18.4177, 18.35237], [18.41076, np.nan, 0.0208], [18.43803, 0.01388, np.nan]],
+])
+def test_an_anchor_centimetres_from_another_in_line_with_a_third_is_no_ok_shape_with_a_160_m_std(mean):
+    """Invertible information, but the shape's least-determined direction has a linearized
+    std of 80-160 m here (the review found such rounds "ok"): the ranges bound it only at
+    second order, so the answer is degenerate with a covariance of centimetres."""
+    res = calibrate_anchors(_review_round(mean, 5))
+    assert res.status == "degenerate" and not res.converged
+    assert np.all(res.position_std_m() < 0.5)

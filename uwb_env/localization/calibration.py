@@ -700,6 +700,13 @@ def _finish(problem: _Problem, best: _Candidate, refs, prior, gauge, tried, ambi
     n, dim = problem.n, problem.dim
     out, x_gauge = best.out, best.x
     cov_gauge = None if force_degenerate else _covariance_or_none(out)
+    linearized = cov_gauge
+    if cov_gauge is not None and prior is None and _shape_beyond_scene(problem, best):
+        # Invertible, but the *shape* (not just the frame: anchors 0 and 1 close make the paper
+        # frame's rotation, not the shape, uncertain) has a direction whose linearized variance
+        # exceeds the scene's size: an anchor a few cm from another, in line with a third, came
+        # back "ok" with a 160 m std. The ranges fix it only to second order there.
+        cov_gauge = None
     degenerate = 0  # null directions
     if cov_gauge is None:
         # Collinear within the noise (three anchors whose ranges do not close a triangle): the
@@ -714,9 +721,16 @@ def _finish(problem: _Problem, best: _Candidate, refs, prior, gauge, tried, ambi
                                 "(collinear / coplanar anchors, or too few pairs for a rigid shape)")
         # One null direction only: with two or more (four anchors on a line) the null space's
         # basis is arbitrary and one-sigma points along it were 2-30x too narrow (review).
-        x_gauge, cov_gauge, degenerate = degenerate_fit(
-            x_gauge, s.column < s.n_free, out.information[:s.n_free, :s.n_free], problem.pairs[keep],
-            problem.dist[keep], out.weights, max_null=1)
+        try:
+            x_gauge, cov_gauge, degenerate = degenerate_fit(
+                x_gauge, s.column < s.n_free, out.information[:s.n_free, :s.n_free], problem.pairs[keep],
+                problem.dist[keep], out.weights, max_null=1)
+        except GeometryError:
+            if linearized is None:
+                raise
+            cov_gauge = linearized  # no better account than the linearized one: report that
+    if degenerate:
+        keep = best.keep
         pairs = problem.pairs[keep]
         residuals = np.linalg.norm(x_gauge[pairs[:, 0]] - x_gauge[pairs[:, 1]], axis=1) - problem.dist[keep]
         z = residuals * np.sqrt(problem.inv_var[keep])
@@ -769,6 +783,28 @@ def _finish(problem: _Problem, best: _Candidate, refs, prior, gauge, tried, ambi
         starts_tried=tried,
         ambiguous=ambiguous,
     )
+
+
+def _shape_beyond_scene(problem: _Problem, best: _Candidate) -> bool:
+    """The shape's least-determined direction (the gauge's rigid motions set aside: the
+    information over all coordinates, its dim(dim+1)/2 smallest eigenvalues dropped) has a
+    linearized variance beyond the scene's size squared."""
+    n, dim = problem.n, problem.dim
+    keep = best.keep
+    pairs, x = problem.pairs[keep], best.x
+    if len(pairs) == 0:
+        return False
+    diff = x[pairs[:, 0]] - x[pairs[:, 1]]
+    unit = diff / np.maximum(np.linalg.norm(diff, axis=1), 1e-12)[:, None]
+    jac = np.zeros((len(pairs), n, dim))
+    rows = np.arange(len(pairs))
+    jac[rows, pairs[:, 0]] = unit
+    jac[rows, pairs[:, 1]] = -unit
+    jac = jac.reshape(len(pairs), n * dim) * np.sqrt(problem.inv_var[keep])[:, None]
+    lam = np.linalg.eigvalsh(jac.T @ jac)
+    shape_min = lam[dim * (dim + 1) // 2]
+    scale = float(np.max(problem.dist[keep]))
+    return bool(shape_min * scale * scale <= 1.0)
 
 
 def _covariance_or_none(out) -> np.ndarray | None:
