@@ -48,7 +48,7 @@ from scipy.special import chdtrc, chdtri
 
 from uwb_env.localization.alignment import frame_refs, paper_frame, rigid_align
 from uwb_env.localization.buildup import buildup_starts
-from uwb_env.localization.degenerate import degenerate_fit
+from uwb_env.localization.degenerate import degenerate_fit, shape_beyond_scene
 from uwb_env.localization.errors import (
     DisconnectedGraphError,
     GeometryError,
@@ -701,7 +701,8 @@ def _finish(problem: _Problem, best: _Candidate, refs, prior, gauge, tried, ambi
     out, x_gauge = best.out, best.x
     cov_gauge = None if force_degenerate else _covariance_or_none(out)
     linearized = cov_gauge
-    if cov_gauge is not None and prior is None and _shape_beyond_scene(problem, best):
+    if cov_gauge is not None and prior is None and shape_beyond_scene(
+            best.x, problem.pairs[best.keep], problem.dist[best.keep], problem.inv_var[best.keep]):
         # Invertible, but the *shape* (not just the frame: anchors 0 and 1 close make the paper
         # frame's rotation, not the shape, uncertain) has a direction whose linearized variance
         # exceeds the scene's size: an anchor a few cm from another, in line with a third, came
@@ -783,28 +784,6 @@ def _finish(problem: _Problem, best: _Candidate, refs, prior, gauge, tried, ambi
         starts_tried=tried,
         ambiguous=ambiguous,
     )
-
-
-def _shape_beyond_scene(problem: _Problem, best: _Candidate) -> bool:
-    """The shape's least-determined direction (the gauge's rigid motions set aside: the
-    information over all coordinates, its dim(dim+1)/2 smallest eigenvalues dropped) has a
-    linearized variance beyond the scene's size squared."""
-    n, dim = problem.n, problem.dim
-    keep = best.keep
-    pairs, x = problem.pairs[keep], best.x
-    if len(pairs) == 0:
-        return False
-    diff = x[pairs[:, 0]] - x[pairs[:, 1]]
-    unit = diff / np.maximum(np.linalg.norm(diff, axis=1), 1e-12)[:, None]
-    jac = np.zeros((len(pairs), n, dim))
-    rows = np.arange(len(pairs))
-    jac[rows, pairs[:, 0]] = unit
-    jac[rows, pairs[:, 1]] = -unit
-    jac = jac.reshape(len(pairs), n * dim) * np.sqrt(problem.inv_var[keep])[:, None]
-    lam = np.linalg.eigvalsh(jac.T @ jac)
-    shape_min = lam[dim * (dim + 1) // 2]
-    scale = float(np.max(problem.dist[keep]))
-    return bool(shape_min * scale * scale <= 1.0)
 
 
 def _covariance_or_none(out) -> np.ndarray | None:

@@ -82,6 +82,20 @@ def degenerate_fit(positions: np.ndarray, free: np.ndarray, information: np.ndar
     return positions, cov, k
 
 
+def shape_beyond_scene(positions: np.ndarray, pairs: np.ndarray, dist: np.ndarray, weights: np.ndarray) -> bool:
+    """The shape's least-determined direction (the information over all coordinates, its
+    dim(dim+1)/2 rigid-motion eigenvalues dropped: not the frame's) has a linearized variance
+    beyond the scene's size squared: there the ranges fix it only to second order."""
+    if len(pairs) == 0:
+        return False
+    dim = positions.shape[1]
+    every = np.ones(positions.size, dtype=bool)
+    _, _, jac = _chi2_and_jacobian(positions, every, positions.ravel(), pairs, dist, weights)
+    shape_min = np.linalg.eigvalsh(jac.T @ jac)[dim * (dim + 1) // 2]
+    scale = float(np.max(dist))
+    return bool(shape_min * scale * scale <= 1.0)
+
+
 def _chi2_and_jacobian(positions: np.ndarray, free: np.ndarray, x_free: np.ndarray, pairs: np.ndarray,
                        dist: np.ndarray, weights: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     """Chi-square, whitened residuals and whitened Jacobian over the free coordinates."""
