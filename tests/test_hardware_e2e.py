@@ -166,3 +166,45 @@ def test_scene_range_noise_does_not_depend_on_how_far_wall_time_moved_the_world(
     a, b = np.zeros(2), np.array([3.0, 4.0])
     np.testing.assert_array_equal(fresh.measure(a, b, 10), stalled.measure(a, b, 10))
     assert not np.array_equal(fresh.world.anchors_true, stalled.world.anchors_true)  # it did move
+
+
+def test_moving_team_with_odometry_in_its_own_frame():
+    """The robots' odometry reports in a frame rotated and mirrored against the calibration's
+    paper frame (as real odometry does: nothing aligns the two). Displacements are held back
+    until the transform is fitted from the motion, then rotated; the backend used to add them
+    as they came, moving every estimate the wrong way."""
+    cfg = EnvConfig.from_dict({"max_cycles": 90, "sim": {
+        "tag_motion": {"model": "static"}, "anchor_motion": {"model": "patrol", "patrol_radius_m": 3.0},
+        "odometry": {"model": "uniform", "uniform_error_m": 0.005}}})
+    scene = Scene(cfg.sim, seed=3)
+    emu, urls = standard_setup(scene)
+    c, s = np.cos(2.1), np.sin(2.1)
+    to_odometry = np.array([[c, -s], [s, c]]) @ np.diag([1.0, -1.0])  # world -> the robots' odometry frame
+    rng = np.random.default_rng(0)
+    last = [scene.anchors_true()]
+
+    def odometry(dt_s):
+        now = scene.anchors_true()
+        moved, last[0] = now - last[0], now
+        return (moved + rng.uniform(-0.005, 0.005, moved.shape)) @ to_odometry.T
+
+    with emu:
+        world = connect(cfg.sim, urls["anchor"], [urls[f"tag_{i}"] for i in range(3)],
+                        pans_anchor_ids=emulated_anchor_ids(), odometry_source=odometry)
+        env = uwb_env.parallel_env(config=cfg, backend=world)
+        env.reset(seed=0)
+        frame = world.odometry_frame
+        held_back_seen = False
+        for step in range(90):
+            env.step({a: int(step % 10 == 9) for a in env.agents})
+            if frame.rotation is None and np.abs(world.odometry.held_back).max() > 0.05:
+                held_back_seen = True  # the estimates did not move; the predicted error says so
+                held = (world.odometry.held_back**2).sum(-1)
+                assert np.all(env.system.predicted_anchor_var_m2() >= held)
+        est, truth = world.anchors_est.copy(), scene.anchors_true()
+        world.close()
+    assert held_back_seen
+    assert frame.rotation is not None, frame.fit  # decided from the motion ...
+    rot, trans = rigid_align(truth, est)  # world -> the estimate frame
+    np.testing.assert_allclose(frame.rotation, rot @ to_odometry.T, atol=0.1)  # ... and right
+    assert np.linalg.norm(truth @ rot.T + trans - est, axis=1).max() < 0.2

@@ -348,6 +348,9 @@ class LocalizationSystem:
                                       since_mid[None])
         self._estimates_epoch += 1
         self.world.odometry.restart_drift(since=drift_at_mid)
+        path = self._round_path
+        self.world.calibration_applied(solutions.positions[0], np.trace(solutions.anchor_cov[0], axis1=1, axis2=2),
+                                       path.times_s[0], path.times_s[-1])
         return None
 
     def _pair_times(self, finished) -> np.ndarray | None:

@@ -5,8 +5,10 @@ the simulated world: calibration rounds send the TIERS start byte and wait for t
 matrix; tag ranges come from the tags (stock-PANS ``lec`` streams, or the lines of tags
 running the TIERS localization build); anchor motion comes from a
 user-supplied odometry source (a callable returning each anchor's displacement since the
-last call) or the anchors are declared static. There is no ground truth: ``anchors_true`` and
-``tags_true`` are NaN, so truth-based metrics are NaN and the env uses its residual proxy.
+last call, in the robots' odometry frame: held back until that frame's transform to the
+calibration's is fitted from the motion, ``odometry_frame.py``) or the anchors are static.
+There is no ground truth: ``anchors_true`` and ``tags_true`` are NaN, so truth-based metrics
+are NaN and the env uses its residual proxy.
 It runs in wall-clock time (each step waits for the next ``dt_s`` tick) and is not
 deterministic.
 
@@ -26,12 +28,12 @@ import numpy as np
 from uwb_env.config import ConfigBase, SimConfig
 from uwb_env.hardware.drivers import PansShellTagDriver, TiersAnchorDriver, TiersTagDriver
 from uwb_env.hardware.errors import HardwareError
+from uwb_env.hardware.odometry_frame import ODOMETRY_FRAMES, HeldBackOdometry, OdometryFrameTracker
 from uwb_env.hardware.pans_anchor import PansAnchorDriver, RoleSwitchCalibrator
 from uwb_env.hardware.tiers import firmware_pair_order, unwrap_negative_means
 from uwb_env.localization.errors import LocalizationError
 from uwb_env.measurements import RangeMatrix
 from uwb_env.sim.calibration_round import RoundTiming
-from uwb_env.sim.odometry import OdometryModel
 from uwb_env.sim.ranging import RangeModel
 from uwb_env.sim.world import RoundRunner
 
@@ -50,10 +52,17 @@ class HardwareConfig(ConfigBase):
     tag_range_consistency_m: float = 0.5
     tag_watchdog_s: float = 1.0  # a tag silent this long (or reconnected) gets its stream restarted
     realtime: bool = True  # wait for each dt_s tick (False: step as fast as called, e.g. replay)
+    # the frame odometry_source reports in: "estimate" (the robots' own odometry frame; its
+    # transform to the calibration's frame is fitted from motion, displacements are held back
+    # until then: hardware/odometry_frame.py) or "calibration" (already in the estimate frame)
+    odometry_frame: str = "estimate"
+    odometry_frame_margin_chi2: float = 16.0  # every rival transform this much worse
+    odometry_frame_max_std_deg: float = 5.0  # the fitted angle's largest std
 
     def __post_init__(self) -> None:
         self._positive("round_timeout_s", "pans_role_switch_s", "tag_range_max_age_s", "tag_range_consistency_m",
-                       "tag_watchdog_s")
+                       "tag_watchdog_s", "odometry_frame_margin_chi2", "odometry_frame_max_std_deg")
+        self._choice("odometry_frame", ODOMETRY_FRAMES)
 
 
 class CalibrationFailed(LocalizationError):
@@ -143,8 +152,11 @@ class HardwareWorld(RoundRunner):
         self.round_correction = self._correction(self.hardware.pans_correct_bias if self.role_switching
                                                  else self.hardware.tiers_correct_bias)
         self.timing = RoundTiming.fit(config.calibration)
-        self.odometry = OdometryModel(config.odometry)  # its variance model predicts the drift
+        self.odometry = HeldBackOdometry(config.odometry)  # its variance model predicts the drift
         self.odometry_source = odometry_source
+        self.odometry_frame = OdometryFrameTracker(config, self.hardware.odometry_frame if odometry_source else
+                                                   "calibration", self.hardware.odometry_frame_margin_chi2,
+                                                   self.hardware.odometry_frame_max_std_deg)
         self.motion = _MotionCommands(move_callback)
         self.dt_s = config.dt_s
         self.round: HardwareRound | None = None
@@ -157,7 +169,8 @@ class HardwareWorld(RoundRunner):
         self.rng = rng
         self.time_s, self.step_count = 0.0, 0
         self.anchors_est = np.zeros((self.config.n_anchors, self.config.dim))
-        self.odometry.reset(self.config.n_anchors, rng)
+        self.odometry.reset(self.config.n_anchors, rng, self.config.dim)
+        self.odometry_frame.reset(self.odometry)
         if self.round is not None and not self.round.done:
             self.anchor.abandon()  # its matrix, if the firmware still prints it, is stale
         self.round = None
@@ -166,6 +179,9 @@ class HardwareWorld(RoundRunner):
                 tag.ensure_streaming()  # never toggles a running stream off
             except HardwareError:
                 pass  # a tag away or rebooting: its watchdog keeps trying, its ranges are NaN meanwhile
+        if self.odometry_source is not None:
+            # the motion while the episode was set up: before any estimate, nothing to move
+            self.odometry_source(0.0)
         self._t0 = time.monotonic()
 
     def step(self) -> None:
@@ -173,12 +189,15 @@ class HardwareWorld(RoundRunner):
             wait = self._t0 + (self.step_count + 1) * self.dt_s - time.monotonic()
             if wait > 0:
                 time.sleep(wait)
-        if self.odometry_source is not None:
-            moved = np.asarray(self.odometry_source(self.dt_s), dtype=float)
-            self.anchors_est += moved
-            self.odometry.note_motion(moved)
         self.step_count += 1
         self.time_s = self.step_count * self.dt_s
+        if self.odometry_source is not None:
+            moved = np.asarray(self.odometry_source(self.dt_s), dtype=float)
+            if moved.shape != self.anchors_est.shape or not np.isfinite(moved).all():
+                raise ValueError(f"odometry_source returned {moved!r}: expected finite displacements of shape "
+                                 f"{self.anchors_est.shape} (one row per anchor, metres since the last call)")
+            self.anchors_est += self.odometry_frame.step(self.time_s, moved)
+            self.odometry.note_motion(moved)
         for tag in self.tags:
             tag.poll()
         if self.round is not None and not self.round.done:
@@ -214,6 +233,12 @@ class HardwareWorld(RoundRunner):
         return RangeModel(self.config.ranging.replace(correct_bias=correct_bias))
 
     # -- the World interface -------------------------------------------------------------------
+    def calibration_applied(self, positions: np.ndarray, var_m2: np.ndarray, start_s: float, end_s: float) -> None:
+        """A team calibration was applied (``positions`` at its round's midpoint): fit the odometry
+        frame's transform while it is unknown (``odometry_frame.fit``, ``.rotation``)."""
+        if self.odometry_source is not None:
+            self.anchors_est += self.odometry_frame.calibration_applied(positions, var_m2, start_s, end_s)
+
     def set_estimate_frame(self, rotation: np.ndarray, origin: np.ndarray) -> None:
         self.frame_rotation, self.frame_origin = rotation, origin
 

@@ -31,6 +31,10 @@ class RoundRunner:
             steps += 1
         return self.finish_calibration_round().result(), steps
 
+    def calibration_applied(self, positions: np.ndarray, var_m2: np.ndarray, start_s: float, end_s: float) -> None:
+        """A team calibration's solution was applied (the hardware backend fits its odometry
+        frame from these; the simulator knows its frame)."""
+
 
 def formation_xy(config: SimConfig, rng: np.random.Generator, copies: int | None = None) -> np.ndarray:
     """Initial anchor positions in the plane, (n, 2), or (copies, n, 2) for the batched env (the

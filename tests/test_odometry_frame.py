@@ -1,0 +1,120 @@
+"""The odometry frame's transform on hardware: fitted from motion, never guessed.
+
+The robots report displacements in their own odometry frame; the estimates live in the first
+calibration's paper frame, a rotation and possibly a reflection away. Adding displacements
+unrotated (what the backend did) moves every estimate the wrong way."""
+
+import numpy as np
+import pytest
+
+from uwb_env.config import SimConfig
+from uwb_env.hardware.odometry_frame import HeldBackOdometry, OdometryFrameTracker
+from uwb_env.localization.odometry_frame import _matrix, fit_odometry_rotation
+from uwb_env.sim.world import World
+
+
+def _draw(rng, n, motion_m):
+    """Two calibrations a non-rigid motion apart: (reference, later in another frame,
+    displacement in the odometry frame, the odometry frame's true transform, noise var)."""
+    world0 = rng.uniform(0, 10, (n, 2))
+    moved = rng.normal(0, motion_m, (n, 2))
+    q = _matrix(rng.uniform(-np.pi, np.pi), bool(rng.integers(2)))  # odometry -> reference frame
+    other = _matrix(rng.uniform(-np.pi, np.pi), False)  # reference frame -> the later calibration's
+    sig = rng.uniform(0.02, 0.2, n)  # per-axis std of each calibration's error
+    ref = world0 @ q.T + rng.normal(0, 1, (n, 2)) * sig[:, None]
+    later = ((world0 + moved) @ q.T) @ other.T + rng.normal(0, 3, 2) + rng.normal(0, 1, (n, 2)) * sig[:, None]
+    return ref, later, moved, q, 4 * sig**2  # var summed over axes of the difference of two
+
+
+def test_fit_is_never_confidently_wrong_and_its_angle_std_is_calibrated():
+    rng = np.random.default_rng(0)
+    z, wrong, decided = [], 0, 0
+    trials = 3000
+    for _ in range(trials):
+        n = int(rng.integers(3, 9))
+        ref, later, moved, q, var = _draw(rng, n, rng.uniform(0.2, 2.0))
+        fit = fit_odometry_rotation(ref, later, moved, var)
+        if not fit.ok:
+            continue
+        decided += 1
+        truth = np.arctan2(q[1, 0], q[0, 0])
+        err = np.angle(np.exp(1j * (fit.angle_rad - truth)))
+        if fit.reflected != (np.linalg.det(q) < 0) or abs(err) > 0.3:
+            wrong += 1
+        else:
+            z.append(err / fit.angle_std_rad)
+            assert np.allclose(fit.rotation, q, atol=6 * fit.angle_std_rad)
+    assert wrong == 0
+    assert decided > 0.6 * trials
+    assert 0.9 < np.std(z) < 1.1  # the reported std is the error's
+    assert abs(np.mean(z)) < 0.1
+
+
+def test_a_rigid_team_motion_does_not_decide_the_frame():
+    rng = np.random.default_rng(1)
+    world0 = rng.uniform(0, 10, (5, 2))
+    moved = np.tile([2.0, -1.0], (5, 1))  # ranges cannot see a translation of the whole team
+    q = _matrix(0.7, True)
+    fit = fit_odometry_rotation(world0 @ q.T, (world0 + moved) @ q.T, moved, np.full(5, 1e-3))
+    assert fit.status == "unobservable" and not fit.ok
+
+
+def test_a_wrong_calibration_is_a_poor_fit_not_a_frame():
+    rng = np.random.default_rng(2)
+    ref, later, moved, q, var = _draw(rng, 6, 1.5)
+    later[2] += [1.0, 0.0]  # one anchor a metre off, with cm-level variances claimed
+    fit = fit_odometry_rotation(ref, later, moved, np.full(6, 1e-3))
+    assert fit.status == "poor_fit"
+
+
+def test_bad_input_names_the_field():
+    ref = np.zeros((4, 2))
+    with pytest.raises(ValueError, match="displacement"):
+        fit_odometry_rotation(ref, ref, np.zeros((3, 2)), np.ones(4))
+    with pytest.raises(ValueError, match="var_m2"):
+        fit_odometry_rotation(ref, ref, ref, -np.ones(4))
+    with pytest.raises(ValueError, match="later"):
+        fit_odometry_rotation(ref, np.full((4, 2), np.nan), ref, np.ones(4))
+
+
+def test_tracker_holds_motion_back_until_the_frame_is_known_then_rotates_it():
+    """The simulator's patrol motion as truth; calibrations solve it (with noise) in a frame the
+    odometry does not share (rotated 120 degrees and mirrored)."""
+    cfg = SimConfig.from_dict({"anchor_motion": {"model": "patrol", "patrol_radius_m": 3.0},
+                               "odometry": {"model": "uniform", "uniform_error_m": 0.005}})
+    world = World(cfg)
+    rng = np.random.default_rng(3)
+    world.reset(rng)
+    to_estimate = _matrix(np.deg2rad(120.0), True)  # world -> the calibration's frame
+    to_odometry = _matrix(np.deg2rad(-40.0), False)  # world -> the robots' odometry frame
+    odometry = HeldBackOdometry(cfg.odometry)
+    odometry.reset(cfg.n_anchors, rng)
+    tracker = OdometryFrameTracker(cfg)
+    tracker.reset(odometry)
+    sigma = 0.03
+    decided_at = None
+    for step in range(1, 400):
+        before = world.anchors_true.copy()
+        world.step()
+        moved = (world.anchors_true - before) @ to_odometry.T + rng.uniform(-0.005, 0.005, before.shape)
+        applied = tracker.step(world.time_s, moved)
+        odometry.note_motion(moved)
+        if tracker.rotation is None:
+            assert np.all(applied == 0.0)  # nothing applied in an unknown frame ...
+            held = (odometry.held_back**2).sum(-1)
+            assert np.all(odometry.expected_drift_var_m2(2) >= held)  # ... its length counted as error
+        if step % 25 == 0:  # a calibration (an instantaneous round here)
+            odometry.restart_drift()
+            positions = world.anchors_true @ to_estimate.T + rng.normal(0, sigma, (cfg.n_anchors, 2))
+            tracker.calibration_applied(positions, np.full(cfg.n_anchors, 2 * sigma**2), world.time_s, world.time_s)
+            if tracker.rotation is not None and decided_at is None:
+                decided_at = step
+    assert decided_at is not None, tracker.fit
+    np.testing.assert_allclose(tracker.rotation, to_estimate @ to_odometry.T, atol=0.05)
+    moved = np.ones((cfg.n_anchors, 2))
+    np.testing.assert_allclose(tracker.step(world.time_s, moved), moved @ tracker.rotation.T)
+
+
+def test_tracker_refuses_3d_estimation():
+    with pytest.raises(ValueError, match="odometry_frame='estimate' with dim=3"):
+        OdometryFrameTracker(SimConfig.from_dict({"dim": 3}))
