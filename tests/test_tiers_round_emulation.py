@@ -166,3 +166,32 @@ def test_a_hardware_round_running_past_its_estimate_holds_the_channel_until_it_e
         assert busy_fraction(world.round, world.time_s - 0.2, world.time_s, 0.2) == pytest.approx(1.0)
     assert [(i + 1, j + 1) for i, j in zip(world.round.initiator, world.round.responder, strict=True)] \
         == FIRMWARE_ORDER_IDS
+
+
+def test_a_finished_hardware_round_gives_each_pair_its_slot_for_the_carry():
+    """The firmware ranges its pairs one after another in equal slots: the backend gives the
+    estimator each pair's slot middle over the round's measured duration (it used to give none,
+    so moving teams' ranges were never carried to the round's midpoint)."""
+    from uwb_env.hardware.backend import HardwareRound, HardwareWorld
+    from uwb_env.sim.round_path import pair_mean_times_s
+
+    matrix = np.full((4, 4), 5.0)
+    np.fill_diagonal(matrix, 0.0)
+
+    class _Answers:
+        def poll(self):
+            return RangeMatrixMessage(mean_m=matrix, std_m=np.full((4, 4), 0.02))
+
+    world = HardwareWorld.__new__(HardwareWorld)
+    world.config = SimConfig()
+    world.means_unwrapped = world.means_wrap_ambiguous = 0
+    world.round = HardwareRound(1.0, 0.9, 4, pairs=firmware_pair_order())
+    world.anchor, world.role_switching = _Answers(), False
+    world.time_s = 2.2  # the matrix arrives 1.2 s after the start byte (retries)
+    world._poll_round()
+    rnd = world.round
+    assert rnd.done and rnd.times_s is not None
+    np.testing.assert_allclose(rnd.times_s, 1.0 + (np.arange(12) + 0.5) * 0.1)  # 12 slots of 0.1 s, in order
+    times = pair_mean_times_s(4, rnd.times_s, rnd.initiator, rnd.responder)
+    first, last = firmware_pair_order()[0], firmware_pair_order()[-1]
+    assert times[first] == pytest.approx(1.05) and times[last] == pytest.approx(2.15)

@@ -354,7 +354,7 @@ class LocalizationSystem:
         return None
 
     def _pair_times(self, finished) -> np.ndarray | None:
-        times = getattr(finished, "times_s", None)  # hardware rounds report the matrix only
+        times = getattr(finished, "times_s", None)  # None: PANS role-switching rounds (no known schedule)
         if times is None:
             return None
         return pair_mean_times_s(self.n_anchors, times, finished.initiator, finished.responder)

@@ -85,6 +85,9 @@ class HardwareRound:
         self.initiator = np.array([i for i, _ in pairs])
         self.responder = np.array([j for _, j in pairs])
         self.done = False
+        # each ordered pair's time (absolute, aligned with ``initiator``), where the firmware's
+        # schedule is known (TIERS: set when the matrix arrives); None: no carry to the midpoint
+        self.times_s: np.ndarray | None = None
         self.matrix: RangeMatrix | None = None
         self.error: str | None = None
         self.elapsed_s = 0.0
@@ -226,6 +229,11 @@ class HardwareWorld(RoundRunner):
             k = self.config.calibration.measurements_per_pair
             rnd.matrix = RangeMatrix(np.where(valid, mean, np.nan), np.where(valid, message.std_m, np.nan),
                                      np.where(valid, k, 0))
+            # The firmware ranges its pairs one after another in equal slots (tiers.firmware_pair_order;
+            # retries stretch the round, which the matrix's arrival time includes): each pair at its
+            # slot's middle, so the system carries the ranges to the round's midpoint as in simulation.
+            pairs = len(rnd.initiator)
+            rnd.times_s = rnd.start_time_s + (np.arange(pairs) + 0.5) / pairs * (self.time_s - rnd.start_time_s)
 
     def _correction(self, correct_bias: bool) -> RangeModel:
         if correct_bias == self.range_model.config.correct_bias:

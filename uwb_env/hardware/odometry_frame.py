@@ -107,9 +107,9 @@ class OdometryFrameTracker:
         at_start, at_mid, at_end = (self._cumulative_at(t) for t in (start_s, mid, end_s))
         now = self._cumulative[-1]
         self.odometry.held_back[:] = now - at_mid  # the estimates are the solution at the midpoint
-        # The round ranges its pairs one after another while the robots move; hardware rounds
-        # report no exchange times to carry them, so allow for the motion during the round
-        # (uniform along each path: L^2 / 12, and the others' motion through the shared solve).
+        # The round ranges its pairs one after another while the robots move, and with the
+        # estimates held still the carry to the midpoint does nothing: allow for the motion
+        # during the round (uniform along each path: L^2 / 12, and the others' through the solve).
         moved2 = ((at_end - at_start) ** 2).sum(-1)
         # the paper frame's gauge gives anchor 0 no variance and the others its share: at least
         # the team's mean for each
