@@ -195,3 +195,92 @@ def test_a_finished_hardware_round_gives_each_pair_its_slot_for_the_carry():
     times = pair_mean_times_s(4, rnd.times_s, rnd.initiator, rnd.responder)
     first, last = firmware_pair_order()[0], firmware_pair_order()[-1]
     assert times[first] == pytest.approx(1.05) and times[last] == pytest.approx(2.15)
+
+
+def _static_scene(seed=0):
+    from uwb_env.hardware.emulator import Scene
+
+    cfg = SimConfig.from_dict({"anchor_motion": {"model": "static"}, "tag_motion": {"model": "static"}})
+    return Scene(cfg, seed=seed, speedup=0.0)
+
+
+def _round_at(device, t):
+    """Send S and poll until the matrix (or give up after 5 s: a hung round); returns (message, t)."""
+    decoder = TiersDecoder()
+    device.receive(b"S", t)
+    for _ in range(1000):
+        t += 0.005
+        for m in decoder.feed(device.poll(t)):
+            if isinstance(m, RangeMatrixMessage):
+                device.poll(t + 0.1)  # past the settle: "Waiting for Start order", as a driver waits for
+                return m, t + 0.1
+    return None, t
+
+
+def test_a_missed_hand_over_broadcast_hangs_the_round_for_good():
+    """ss_resp_run: a responder becomes initiator only on the F frame its predecessor addresses
+    to it, and nothing retries that frame: missing it leaves nobody initiating."""
+    from uwb_env.hardware.emulator import Faults
+
+    device = TiersAnchorDevice(_static_scene(), faults=Faults(missed_f_probability=1.0))
+    message, t = _round_at(device, 0.0)
+    assert message is None and device.hung == 1
+    assert [i for i, _, _ in device.pair_log] == [0, 0, 0]  # ID 1's pairs, then its F to ID 2 is lost
+    device.receive(b"S", t)  # the flag is latched: another S changes nothing
+    assert device.poll(t + 5.0) == b""
+
+
+def test_missed_finish_broadcasts_reprint_old_cells_and_every_one_is_flagged():
+    """ID 1 prints its own copy of the matrix, the other initiators' cells written from their F
+    broadcasts: a missed one reprints the earlier round's cell. Every such cell repeats the
+    previous matrix byte for byte, so ``repeated_cells`` flags it (besides chance repeats)."""
+    from uwb_env.hardware.emulator import Faults
+    from uwb_env.hardware.tiers import repeated_cells
+
+    device = TiersAnchorDevice(_static_scene(1), faults=Faults(missed_f_probability=0.05), seed=4)
+    previous, t = None, 0.0
+    printed = stale_printed = flagged = 0
+    off = ~np.eye(4, dtype=bool)
+    for _ in range(120):
+        before = device.stale_cells
+        message, t = _round_at(device, t)
+        if message is None:  # a hand-over was missed: only a reboot helps (it clears the cells)
+            device.reboot()
+            device.poll(t)
+            previous = None
+            continue
+        fresh = device.stale_cells - before
+        repeated = repeated_cells(previous, message)
+        if previous is not None:  # after a reboot a missed cell is 0: never filled, not stale
+            stale_printed += fresh
+            flagged += int(repeated[off].sum())
+            assert repeated[off].sum() >= fresh
+        printed += 1
+        previous = message
+    assert printed > 60 and stale_printed > 10
+    assert flagged - stale_printed < 0.05 * printed * 12  # chance repeats: a few % of cells
+
+
+def test_repeated_cells_are_dropped_from_the_round_not_credited_to_it():
+    from uwb_env.hardware.backend import HardwareRound, HardwareWorld
+
+    mean = np.full((4, 4), 5.0)
+    np.fill_diagonal(mean, 0.0)
+    repeated = np.zeros((4, 4), dtype=bool)
+    repeated[2, 1] = True
+
+    class _Answers:
+        def poll(self):
+            return RangeMatrixMessage(mean_m=mean, std_m=np.full((4, 4), 0.02), repeated=repeated)
+
+    world = HardwareWorld.__new__(HardwareWorld)
+    world.config = SimConfig()
+    world.means_unwrapped = world.means_wrap_ambiguous = world.stale_cells_dropped = 0
+    world.round = HardwareRound(0.0, 0.9, 4, pairs=firmware_pair_order())
+    world.anchor, world.role_switching = _Answers(), False
+    world.time_s = 1.0
+    world._poll_round()
+    matrix = world.round.result()
+    assert np.isnan(matrix.mean_m[2, 1]) and matrix.count[2, 1] == 0
+    assert matrix.mean_m[1, 2] == 5.0  # the reverse direction still has the pair
+    assert world.stale_cells_dropped == 1

@@ -145,6 +145,7 @@ class HardwareWorld(RoundRunner):
         self._inconsistent_ranges = 0  # lec ranges inconsistent with their own line (damaged)
         self.means_unwrapped = 0  # TIERS matrix cells whose negative mean had wrapped (uint8)
         self.means_wrap_ambiguous = 0  # pairs where both directions may have wrapped
+        self.stale_cells_dropped = 0  # TIERS matrix cells repeating the previous matrix (a missed F)
         self.unknown_anchor_ids: set[str] = set()  # IDs the tags reported that are not in anchor_ids
         self.range_model = range_model or RangeModel(config.ranging)
         # What the estimator undoes, per firmware (stock PANS is usually antenna-delay calibrated;
@@ -225,6 +226,13 @@ class HardwareWorld(RoundRunner):
             self.means_unwrapped += unwrapped
             self.means_wrap_ambiguous += ambiguous
             valid = mean != 0  # 0: a cell the firmware never filled (a negative mean is a real reading)
+            if message.repeated is not None:
+                # A cell repeating the previous matrix byte for byte is most likely one whose F
+                # broadcast ID 1 missed: an earlier round's range, wrong by however far the pair
+                # moved since. Dropped (the reverse direction usually has the pair); on a still
+                # team a fresh cell repeats by chance (~2 % of cells) and costs only that cell.
+                self.stale_cells_dropped += int(np.count_nonzero(message.repeated & valid))
+                valid &= ~message.repeated
             np.fill_diagonal(valid, False)
             k = self.config.calibration.measurements_per_pair
             rnd.matrix = RangeMatrix(np.where(valid, mean, np.nan), np.where(valid, message.std_m, np.nan),

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
+from dataclasses import replace
 
 import numpy as np
 
@@ -24,6 +25,7 @@ from uwb_env.hardware.tiers import (
     RejectedMatrix,
     TiersDecoder,
     WaitingForStart,
+    repeated_cells,
 )
 from uwb_env.hardware.tiers_tag import OtherTagLine, RejectedTagLine, TiersTagDecoder, TiersTagLine
 
@@ -81,6 +83,7 @@ class TiersAnchorDriver:
         self._pending = False  # a request whose S waits for the firmware to be ready
         self._reconnections_at_start = 0  # the port's reconnections when the last S went out
         self._last_rx = time.monotonic()
+        self._printed: RangeMatrixMessage | None = None  # the last matrix the firmware printed
 
     @property
     def running(self) -> bool:
@@ -145,6 +148,10 @@ class TiersAnchorDriver:
         """Advance the state machine over decoded messages; the open request's matrix if any."""
         matrix, failure = None, None
         for message in messages:  # all of them, even after a failure: the state must follow
+            if isinstance(message, RangeMatrixMessage):
+                message = self._with_repeats(message)
+            elif isinstance(message, RejectedMatrix):
+                self._printed = None  # what the firmware holds now is unknown
             if isinstance(message, (RangeMatrixMessage, RejectedMatrix)):
                 if self.state == self.RUNNING:
                     self.state = self.SETTLING
@@ -161,6 +168,7 @@ class TiersAnchorDriver:
                     failure = "the firmware ended the round without a readable matrix"
                 self.state = self.READY
             elif isinstance(message, Banner):
+                self._printed = None  # a boot clears the matrix's RAM
                 if self.state == self.RUNNING:
                     # A boot banner read after our S: the board rebooted after it (the round is
                     # gone) or before it, the banner still in flight when the S went out (then
@@ -177,6 +185,12 @@ class TiersAnchorDriver:
         if failure is not None:
             raise RoundFailed(self.transport.url, self.rounds_started, failure)
         return matrix
+
+    def _with_repeats(self, message: RangeMatrixMessage) -> RangeMatrixMessage:
+        """The message with ``repeated`` set against the matrix printed before it (any, stale
+        ones included: the firmware's cells live across rounds), which it then replaces."""
+        before, self._printed = self._printed, message
+        return replace(message, repeated=repeated_cells(before, message))
 
     def run_round(self) -> RangeMatrixMessage:
         self.start_round()

@@ -52,9 +52,14 @@ class Faults(ConfigBase):
     hang: bool = False  # silent: no output, input ignored (a missing TIERS anchor)
     response_delay_s: float = 0.0  # extra latency before each output chunk
     round_slowdown: float = 1.0  # TIERS: rounds take this many times the timing model's duration
+    # TIERS: each receiver misses a pair's finish (F) broadcast with this probability. ID 1 then
+    # keeps that cell from an earlier round (stale); the next initiator missing its hand-over F
+    # (or ID 1 the last one) hangs the round for good, as the firmware has no retry
+    missed_f_probability: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("garbage_probability", "drop_char_probability", "truncate_row_probability"):
+        for name in ("garbage_probability", "drop_char_probability", "truncate_row_probability",
+                     "missed_f_probability"):
             self._probability(name)
         self._non_negative("response_delay_s")
         self._positive("round_slowdown")
@@ -139,6 +144,14 @@ class TiersAnchorDevice:
     forever. The matrix cells live across rounds (static RAM in the firmware), zero after a
     boot.
 
+    The matrix ID 1 prints is its own copy: its three pairs computed locally, the other nine
+    filled from the initiators' finish (``F``) broadcasts (``ss_resp_run``), each sent once and
+    never acknowledged. With ``Faults.missed_f_probability`` ID 1 misses one now and then and
+    prints that cell from an earlier round; a missed hand-over (the ``F`` an initiator sends
+    to the next one after its last pair, or ID 4's last one to ID 1, which triggers the print)
+    leaves nobody initiating: the round hangs until a reboot (``stale_cells``, ``hung`` count
+    them).
+
     ``round_s`` overrides the nominal round duration (tests); ``round_id_in_std`` writes the
     round's number (cm) into std[0, 1] so tests can tell which round a matrix came from.
     """
@@ -173,6 +186,8 @@ class TiersAnchorDevice:
         self.inputs_lost = 0  # bytes thrown away by the end-of-round flush
         self._mean = np.zeros((4, 4))
         self._std = np.zeros((4, 4))
+        self.stale_cells = 0  # cells printed from an earlier round (a missed F broadcast)
+        self.hung = 0  # rounds hung by a missed hand-over
 
     def reboot(self) -> None:
         """USB power cycle: the round in progress is gone, the matrix's RAM cleared; the boot
@@ -228,9 +243,23 @@ class TiersAnchorDevice:
                 else:
                     unanswered += 1
         got = np.array(answers)
-        self._mean[i, j], self._std[i, j] = got.mean(), got.std()  # population std, as the firmware
+        # ID 1 (index 0) stores its own pairs; the others reach its copy by the F broadcast
+        heard = i == 0 or not self._misses_f()
+        if heard:
+            self._mean[i, j], self._std[i, j] = got.mean(), got.std()  # population std, as the firmware
+        # an initiator's last F is addressed to its last responder, the next initiator (ID 1 after
+        # ID 4: the same frame that fills that cell makes it print)
+        last_of_initiator = self._pair + 1 == len(self._pairs) or self._pairs[self._pair + 1][0] != i
+        if last_of_initiator and (not heard if j == 0 else self._misses_f()):
+            self.hung += 1  # nobody initiates: the round never ends
+            return np.inf
+        self.stale_cells += not heard
         poll_s, timeout_s = self._pair_timing()
         return self.k * poll_s + unanswered * timeout_s + timeout_s
+
+    def _misses_f(self) -> bool:
+        p = self.faults.missed_f_probability
+        return p > 0.0 and self.rng.random() < p
 
     def _advance(self, now: float) -> None:
         if self._running and self._flag == b"S" and self._last is not None:

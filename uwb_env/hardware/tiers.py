@@ -64,14 +64,32 @@ class WaitingForStart:
 
 @dataclass(frozen=True)
 class RangeMatrixMessage:
-    """One round's matrix: (4, 4) mean and std in metres (diagonal 0)."""
+    """One round's matrix: (4, 4) mean and std in metres (diagonal 0). ``repeated`` (set by
+    :class:`~uwb_env.hardware.drivers.TiersAnchorDriver`; None from the decoder): cells whose
+    mean and std both repeat the matrix the firmware printed before, byte for byte: possibly
+    stale (a missed ``F`` broadcast leaves ID 1's copy of that cell from an earlier round)."""
 
     mean_m: np.ndarray
     std_m: np.ndarray
+    repeated: np.ndarray | None = None
 
     def __eq__(self, other):
         return (isinstance(other, RangeMatrixMessage) and np.array_equal(self.mean_m, other.mean_m)
                 and np.array_equal(self.std_m, other.std_m))
+
+
+def repeated_cells(previous: RangeMatrixMessage | None, message: RangeMatrixMessage) -> np.ndarray:
+    """(4, 4) bool: the filled cells of ``message`` whose mean and std both equal ``previous``'s
+    (the matrix the firmware printed before it; None: unknown, nothing is flagged).
+
+    ID 1 prints its own copy of the matrix: its pairs computed locally, the others' written
+    when their initiator's finish (``F``) broadcast arrives (``ss_resp_run``, sent once, never
+    acknowledged), and nothing clears a cell between rounds. A missed broadcast therefore
+    reprints the earlier value, byte for byte; a fresh cell repeats both its centimetre mean
+    and std by chance only now and then (about 2 % of cells of a still team in the emulator)."""
+    if previous is None:
+        return np.zeros(np.shape(message.mean_m), dtype=bool)
+    return (message.mean_m == previous.mean_m) & (message.std_m == previous.std_m) & (message.mean_m != 0)
 
 
 @dataclass(frozen=True)
