@@ -118,3 +118,92 @@ def test_tracker_holds_motion_back_until_the_frame_is_known_then_rotates_it():
 def test_tracker_refuses_3d_estimation():
     with pytest.raises(ValueError, match="odometry_frame='estimate' with dim=3"):
         OdometryFrameTracker(SimConfig.from_dict({"dim": 3}))
+
+
+def test_a_later_calibration_mirrored_against_its_reference_carries_the_frame_flip():
+    """The env may apply a calibration that comes out mirrored against the estimates (the frame
+    flips); the transform into the latest frame must flip with it, not keep the old handedness."""
+    from uwb_env.localization.odometry_frame import fit_odometry_rotation_chain
+
+    rng = np.random.default_rng(5)
+    n, sig = 5, 0.02
+    world = [rng.uniform(0, 10, (n, 2))]
+    moves = [rng.normal(0, 1.5, (n, 2)) for _ in range(3)]
+    for m in moves:
+        world.append(world[-1] + m)
+    q = _matrix(0.9, False)  # odometry (= world here) -> the first calibration's frame
+    frames = [q, q, _matrix(-0.4, True) @ q, _matrix(-0.4, True) @ q]  # the third calibration mirrored
+    cal = [w @ f.T + rng.normal(0, sig, (n, 2)) for w, f in zip(world, frames, strict=True)]
+    var = np.full(n, 4 * sig**2)
+    fit = fit_odometry_rotation_chain([(cal[k], cal[k + 1], moves[k], var) for k in range(3)])
+    assert fit.ok, fit
+    np.testing.assert_allclose(fit.rotation, q, atol=0.05)
+    np.testing.assert_allclose(fit.current, frames[-1], atol=0.05)  # mirrored, as the latest frame is
+
+
+def _drive(tracker, odometry, world, rng, to_estimate, to_odometry_at, steps, every=25, sigma=0.03):
+    """The simulator's motion as truth, calibrations every ``every`` steps (instant rounds) in the
+    frame ``to_estimate``; displacements reported through ``to_odometry_at(step)``."""
+    cfg = world.config
+    for step in range(1, steps):
+        before = world.anchors_true.copy()
+        world.step()
+        moved = (world.anchors_true - before) @ to_odometry_at(step).T + rng.uniform(-0.005, 0.005, before.shape)
+        tracker.step(world.time_s, moved)
+        odometry.note_motion(moved)
+        if step % every == 0:
+            odometry.restart_drift()
+            positions = world.anchors_true @ to_estimate.T + rng.normal(0, sigma, (cfg.n_anchors, 2))
+            tracker.calibration_applied(positions, np.full(cfg.n_anchors, 2 * sigma**2), world.time_s, world.time_s)
+
+
+def _tracked(seed):
+    cfg = SimConfig.from_dict({"anchor_motion": {"model": "patrol", "patrol_radius_m": 3.0},
+                               "odometry": {"model": "uniform", "uniform_error_m": 0.005}})
+    world = World(cfg)
+    rng = np.random.default_rng(seed)
+    world.reset(rng)
+    odometry = HeldBackOdometry(cfg.odometry)
+    odometry.reset(cfg.n_anchors, rng)
+    tracker = OdometryFrameTracker(cfg)
+    tracker.reset(odometry)
+    return tracker, odometry, world, rng
+
+
+def test_robots_with_odometry_frames_of_their_own_are_never_given_one_transform():
+    """Each robot reporting in its own frame (e.g. each its own start heading): no single transform
+    exists; one ok fit could pass by chance over one interval, the confirmation and the pooled
+    intervals must not let it through."""
+    committed = 0
+    for seed in range(6):
+        tracker, odometry, world, rng = _tracked(10 + seed)
+        frames = np.stack([_matrix(a, False) for a in rng.uniform(-np.pi, np.pi, world.config.n_anchors)])
+        cfg = world.config
+        for step in range(1, 400):
+            before = world.anchors_true.copy()
+            world.step()
+            moved = np.einsum("nij,nj->ni", frames, world.anchors_true - before)
+            tracker.step(world.time_s, moved)
+            odometry.note_motion(moved)
+            if step % 25 == 0:
+                odometry.restart_drift()
+                positions = world.anchors_true + rng.normal(0, 0.03, (cfg.n_anchors, 2))
+                tracker.calibration_applied(positions, np.full(cfg.n_anchors, 2 * 0.03**2), world.time_s,
+                                            world.time_s)
+        committed += tracker.rotation is not None
+    assert committed == 0
+
+
+def test_a_known_transform_that_later_calibrations_contradict_is_given_up_then_relearned():
+    """The odometry frame turns by 90 degrees mid-episode (e.g. the odometry was re-initialised):
+    the tracker must stop applying the old transform, then learn the new one."""
+    tracker, odometry, world, rng = _tracked(3)
+    to_estimate = _matrix(np.deg2rad(120.0), True)
+    old, new = _matrix(np.deg2rad(-40.0), False), _matrix(np.deg2rad(50.0), False)
+    _drive(tracker, odometry, world, rng, to_estimate, lambda step: old, 400)
+    assert tracker.rotation is not None
+    np.testing.assert_allclose(tracker.rotation, to_estimate @ old.T, atol=0.05)
+    _drive(tracker, odometry, world, rng, to_estimate, lambda step: new, 1200)
+    assert tracker.reverted >= 1
+    assert tracker.rotation is not None
+    np.testing.assert_allclose(tracker.rotation, to_estimate @ new.T, atol=0.05)

@@ -9,25 +9,32 @@ the displacements as they come moves every estimate the wrong way as soon as the
   last calibration put them) and counts each one's length as error of unknown direction in the
   predicted variance (:class:`HeldBackOdometry`), so tag fixes, the solver's priors and the
   scheduler's features see how stale the estimates are;
-- after every applied team calibration fits the transform from the odometry between that
-  calibration and a reference one (:func:`~uwb_env.localization.odometry_frame.fit_odometry_rotation`);
-- once the fit is ``ok``, maps it into the current estimate frame (the calibrations since the
-  reference were aligned to estimates that lacked the motion, so that frame may have turned),
-  applies the motion held back since the calibration's midpoint and rotates every later
-  displacement.
+- after every applied team calibration fits one transform to the last ``max_intervals``
+  calibration intervals (:func:`~uwb_env.localization.odometry_frame.fit_odometry_rotation_chain`:
+  each interval with only its own odometry drift in its variance, the frame carried from one
+  calibration to the next by each interval's alignment, a mirrored calibration included);
+- applies it once the fit is ``ok`` at two calibrations in a row with the same answer (one
+  chance ``ok`` among many fits is not enough), with the motion held back since the
+  calibration's midpoint, and rotates every later displacement;
+- checks each later interval against it and goes back to holding displacements when one
+  contradicts it (a re-initialised odometry, the transform drifting with the odometry's heading).
 
-A fit that is ``poor_fit`` restarts from the latest calibration as the new reference;
-``ambiguous`` and ``unobservable`` keep the reference so that the evidence accumulates with
-the motion. Planar only. The odometry's own heading drift (the transform turning slowly) is
-not tracked: a transform, once known, is kept.
+A ``poor_fit`` drops the pooled intervals (a calibration or the odometry went wrong, or the
+robots do not share one odometry frame, which this requires). Planar only.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.stats import chi2 as chi2_dist
 
 from uwb_env.config import SimConfig
-from uwb_env.localization.odometry_frame import OdometryFrameFit, fit_odometry_rotation
+from uwb_env.localization.odometry_frame import (
+    OdometryFrameFit,
+    chained_chi2,
+    fit_odometry_rotation_chain,
+    prepared_interval,
+)
 from uwb_env.sim.odometry import OdometryModel
 
 ODOMETRY_FRAMES = ("estimate", "calibration")
@@ -53,10 +60,11 @@ class HeldBackOdometry(OdometryModel):
 class OdometryFrameTracker:
     """See the module docstring. ``mode``: ``"estimate"`` (learn the transform) or
     ``"calibration"`` (the source already reports in the calibration's frame: displacements
-    are applied as they come)."""
+    are applied as they come). ``max_intervals``: how many of the latest calibration intervals
+    one fit pools."""
 
     def __init__(self, config: SimConfig, mode: str = "estimate", margin_chi2: float = 16.0,
-                 max_angle_std_deg: float = 5.0):
+                 max_angle_std_deg: float = 5.0, max_intervals: int = 6):
         if mode not in ODOMETRY_FRAMES:
             raise ValueError(f"odometry_frame={mode!r}: expected one of {ODOMETRY_FRAMES}")
         if mode == "estimate" and config.dim != 2:
@@ -65,7 +73,8 @@ class OdometryFrameTracker:
                              "(odometry_frame='calibration')")
         self.config, self.mode = config, mode
         self.margin_chi2, self.max_angle_std_rad = margin_chi2, np.deg2rad(max_angle_std_deg)
-        self._drift = OdometryModel(config.odometry)  # drift since the reference calibration
+        self.max_intervals = max_intervals
+        self._drift = OdometryModel(config.odometry)  # drift since the last calibration
 
     def reset(self, odometry: HeldBackOdometry) -> None:
         n, dim = self.config.n_anchors, self.config.dim
@@ -74,18 +83,23 @@ class OdometryFrameTracker:
         self.rotation: np.ndarray | None = np.eye(dim) if self.mode == "calibration" else None
         self.fit: OdometryFrameFit | None = None  # the latest fit
         self.fits = 0
-        self._reference = None  # (positions, variance, cumulative odometry) at a calibration's midpoint
+        self.reverted = 0  # transforms given up after later calibrations contradicted them
+        self._last = None  # (positions, variance, cumulative odometry) at the last calibration's midpoint
+        self._intervals: list = []  # consecutive (reference, later, displacement, variance) since the evidence began
+        self._confirming: OdometryFrameFit | None = None  # an ok fit waiting for the next calibration's
         self._drift.reset(n, np.random.default_rng(0))  # only its variance model is read
         self._times = [0.0]
         self._cumulative = [np.zeros((n, dim))]
 
     def step(self, time_s: float, moved: np.ndarray) -> np.ndarray:
         """One step's displacements (odometry frame) -> what to add to the estimates now."""
-        if self.rotation is not None:
-            return moved @ self.rotation.T
+        if self.mode == "calibration":
+            return moved
         self._times.append(float(time_s))
         self._cumulative.append(self._cumulative[-1] + moved)
         self._drift.note_motion(moved)
+        if self.rotation is not None:
+            return moved @ self.rotation.T
         self.odometry.held_back += moved
         return np.zeros_like(moved)
 
@@ -101,38 +115,79 @@ class OdometryFrameTracker:
         estimate frame, ``var_m2`` (N,) their variances (trace); the round ran from ``start_s``
         to ``end_s``. Returns the correction to add to the estimates now (zero unless the
         transform was just decided: then the motion held back since the midpoint)."""
-        if self.rotation is not None:
+        if self.mode == "calibration":
             return np.zeros_like(positions)
         mid = 0.5 * (start_s + end_s)
         at_start, at_mid, at_end = (self._cumulative_at(t) for t in (start_s, mid, end_s))
         now = self._cumulative[-1]
-        self.odometry.held_back[:] = now - at_mid  # the estimates are the solution at the midpoint
-        # The round ranges its pairs one after another while the robots move, and with the
-        # estimates held still the carry to the midpoint does nothing: allow for the motion
-        # during the round (uniform along each path: L^2 / 12, and the others' through the solve).
+        # drop the log before this round: later lookups start at its midpoint
+        keep = max(int(np.searchsorted(self._times, start_s, side="right")) - 1, 0)
+        self._times, self._cumulative = self._times[keep:], self._cumulative[keep:]
+        # The round ranges its pairs one after another while the robots move; while the motion
+        # is held back the carry to the midpoint does nothing: allow for the motion during the
+        # round (uniform along each path: L^2 / 12, and the others' through the shared solve).
+        # The paper frame's gauge gives anchor 0 no variance and the others its share: at least
+        # the team's mean for each.
         moved2 = ((at_end - at_start) ** 2).sum(-1)
-        # the paper frame's gauge gives anchor 0 no variance and the others its share: at least
-        # the team's mean for each
         var_m2 = np.asarray(var_m2, dtype=float)
-        var = np.maximum(var_m2, var_m2.mean()) + (moved2 + moved2.mean()) / 12.0
-        if self._reference is None:
-            self._set_reference(positions, var, at_mid)
+        var = np.maximum(var_m2, var_m2.mean()) + (0.0 if self.rotation is not None else
+                                                    (moved2 + moved2.mean()) / 12.0)
+        last, self._last = self._last, (np.array(positions, dtype=float), var, at_mid)
+        drift = self._drift.expected_drift_var_m2(2)
+        self._drift.restart_drift()
+        if last is None:
             return np.zeros_like(positions)
-        ref_positions, ref_var, ref_cumulative = self._reference
-        total = ref_var + var + self._drift.expected_drift_var_m2(2)
-        self.fit = fit_odometry_rotation(ref_positions, positions, at_mid - ref_cumulative, np.maximum(total, 1e-6),
-                                         self.margin_chi2, self.max_angle_std_rad)
+        interval = (last[0], self._last[0], at_mid - last[2], np.maximum(last[1] + var + drift, 1e-6))
+        if self.rotation is not None:
+            return self._monitor(interval)
+        self.odometry.held_back[:] = now - at_mid  # the estimates are the solution at the midpoint
+        self._intervals = (self._intervals + [interval])[-self.max_intervals:]
+        if len(self._intervals) == self.max_intervals:
+            self._confirming = None  # the window slid: the earlier fit's frame is not this one's
+        self.fit = fit_odometry_rotation_chain(self._intervals, self.margin_chi2, self.max_angle_std_rad)
         self.fits += 1
         if self.fit.status == "poor_fit":  # a calibration or the odometry went wrong: start over from here
-            self._set_reference(positions, var, at_mid)
-        if not self.fit.ok:
+            self._intervals, self._confirming = [], None
             return np.zeros_like(positions)
-        # the fit maps into the reference's frame; the current one is its alignment away
-        self.rotation = self.fit.alignment @ self.fit.rotation
+        if not self.fit.ok:
+            self._confirming = None
+            return np.zeros_like(positions)
+        # One ok is not enough: with a fit after every calibration, chance alone would pass one
+        # now and then (and robots with odometry frames of their own sometimes fit one transform
+        # over a single interval). Commit when the next calibration's fit, pooling the new
+        # interval too, is ok again with the same handedness and angle.
+        confirmed = (self._confirming is not None and self._confirming.reflected == self.fit.reflected
+                     and abs(np.angle(np.exp(1j * (self._confirming.angle_rad - self.fit.angle_rad))))
+                     <= 3.0 * np.hypot(self._confirming.angle_std_rad, self.fit.angle_std_rad))
+        if not confirmed:
+            self._confirming = self.fit
+            return np.zeros_like(positions)
+        self.rotation = self.fit.current
         self.odometry.held_back[:] = 0.0
-        self._times, self._cumulative = [], []
+        self._intervals, self._confirming = [], None
         return (now - at_mid) @ self.rotation.T
 
-    def _set_reference(self, positions, var, cumulative) -> None:
-        self._reference = (np.array(positions, dtype=float), np.array(var, dtype=float), cumulative)
-        self._drift.restart_drift()
+    def _monitor(self, interval) -> np.ndarray:
+        """After the transform is known: each new interval must agree with it. The transform is
+        carried into the frame the latest calibration was applied in; an interval that prefers
+        another transform by the margin, or that the known one cannot explain, sends the
+        tracker back to holding displacements (the motion already applied stays)."""
+        reference, later, displacement, var = interval
+        known = np.array(self.rotation)
+        reflected = bool(np.linalg.det(known) < 0)
+        angle = float(np.arctan2(known[1, 0], known[0, 0]))  # rot(a) or rot(a) diag(1, -1): the same column
+        prepared = [prepared_interval(reference, later, displacement, var)]
+        at_known, _, carried, hand = chained_chi2(np.array([angle]), reflected, prepared)
+        free = fit_odometry_rotation_chain([interval], self.margin_chi2, self.max_angle_std_rad)
+        dof = 2 * len(reference) - 3
+        contradicted = (at_known[0] > chi2_dist.ppf(0.999, dof)
+                        or (free.status in ("ok", "ambiguous") and at_known[0] - free.chi2 > self.margin_chi2))
+        if contradicted:
+            self.rotation = None
+            self.reverted += 1
+            self._intervals, self._confirming = [], None
+            return np.zeros_like(reference)
+        c, s = np.cos(carried[0]), np.sin(carried[0])
+        rot = np.array([[c, -s], [s, c]])
+        self.rotation = rot @ np.diag([1.0, -1.0]) if hand[0] else rot
+        return np.zeros_like(reference)
