@@ -207,3 +207,15 @@ def test_a_known_transform_that_later_calibrations_contradict_is_given_up_then_r
     assert tracker.reverted >= 1
     assert tracker.rotation is not None
     np.testing.assert_allclose(tracker.rotation, to_estimate @ new.T, atol=0.05)
+
+
+def test_a_full_pooling_window_still_commits():
+    """Once the window of pooled intervals is full it slides with every calibration; the
+    confirmation compares the two fits in the previous calibration's frame, so it still commits
+    (it used to compare their first frames, which the slide changes, and never committed)."""
+    tracker, odometry, world, rng = _tracked(3)
+    tracker.max_intervals = 2
+    to_estimate, to_odometry = _matrix(np.deg2rad(120.0), True), _matrix(np.deg2rad(-40.0), False)
+    _drive(tracker, odometry, world, rng, to_estimate, lambda step: to_odometry, 400)
+    assert tracker.rotation is not None
+    np.testing.assert_allclose(tracker.rotation, to_estimate @ to_odometry.T, atol=0.05)

@@ -86,7 +86,9 @@ class OdometryFrameTracker:
         self.reverted = 0  # transforms given up after later calibrations contradicted them
         self._last = None  # (positions, variance, cumulative odometry) at the last calibration's midpoint
         self._intervals: list = []  # consecutive (reference, later, displacement, variance) since the evidence began
-        self._confirming: OdometryFrameFit | None = None  # an ok fit waiting for the next calibration's
+        # an ok fit waiting for the next calibration's: its (angle, reflected, angle std) in the frame of
+        # the calibration it was made at
+        self._confirming: tuple | None = None
         self._drift.reset(n, np.random.default_rng(0))  # only its variance model is read
         self._times = [0.0]
         self._cumulative = [np.zeros((n, dim))]
@@ -142,8 +144,6 @@ class OdometryFrameTracker:
             return self._monitor(interval)
         self.odometry.held_back[:] = now - at_mid  # the estimates are the solution at the midpoint
         self._intervals = (self._intervals + [interval])[-self.max_intervals:]
-        if len(self._intervals) == self.max_intervals:
-            self._confirming = None  # the window slid: the earlier fit's frame is not this one's
         self.fit = fit_odometry_rotation_chain(self._intervals, self.margin_chi2, self.max_angle_std_rad)
         self.fits += 1
         if self.fit.status == "poor_fit":  # a calibration or the odometry went wrong: start over from here
@@ -156,11 +156,19 @@ class OdometryFrameTracker:
         # now and then (and robots with odometry frames of their own sometimes fit one transform
         # over a single interval). Commit when the next calibration's fit, pooling the new
         # interval too, is ok again with the same handedness and angle.
-        confirmed = (self._confirming is not None and self._confirming.reflected == self.fit.reflected
-                     and abs(np.angle(np.exp(1j * (self._confirming.angle_rad - self.fit.angle_rad))))
-                     <= 3.0 * np.hypot(self._confirming.angle_std_rad, self.fit.angle_std_rad))
+        # Both are compared in the previous calibration's frame (the pooled window may have slid
+        # since, so the two fits' first frames can differ).
+        confirmed = False
+        if self._confirming is not None and len(self._intervals) >= 2:
+            earlier = [prepared_interval(*iv) for iv in self._intervals[:-1]]
+            _, _, angle, hand = chained_chi2(np.array([self.fit.angle_rad]), self.fit.reflected, earlier)
+            before_angle, before_reflected, before_std = self._confirming
+            confirmed = (before_reflected == bool(hand[0]) and abs(np.angle(np.exp(1j * (angle[0] - before_angle))))
+                         <= 3.0 * np.hypot(before_std, self.fit.angle_std_rad))
         if not confirmed:
-            self._confirming = self.fit
+            current = self.fit.current  # this fit's answer in this calibration's frame
+            self._confirming = (float(np.arctan2(current[1, 0], current[0, 0])), bool(np.linalg.det(current) < 0),
+                                self.fit.angle_std_rad)
             return np.zeros_like(positions)
         self.rotation = self.fit.current
         self.odometry.held_back[:] = 0.0
