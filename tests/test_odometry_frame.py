@@ -219,3 +219,12 @@ def test_a_full_pooling_window_still_commits():
     _drive(tracker, odometry, world, rng, to_estimate, lambda step: to_odometry, 400)
     assert tracker.rotation is not None
     np.testing.assert_allclose(tracker.rotation, to_estimate @ to_odometry.T, atol=0.05)
+
+
+def test_a_calibration_without_a_covariance_is_no_evidence_and_no_crash():
+    tracker, odometry, world, rng = _tracked(4)
+    n = world.config.n_anchors
+    tracker.calibration_applied(world.anchors_true.copy(), np.full(n, np.nan), 0.0, 0.0)  # e.g. a degenerate fit
+    assert tracker.rotation is None and tracker.fit is None
+    _drive(tracker, odometry, world, rng, _matrix(0.3, False), lambda step: _matrix(-1.0, True), 400)
+    assert tracker.rotation is not None

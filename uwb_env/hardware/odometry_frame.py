@@ -119,6 +119,11 @@ class OdometryFrameTracker:
         transform was just decided: then the motion held back since the midpoint)."""
         if self.mode == "calibration":
             return np.zeros_like(positions)
+        if not (np.isfinite(positions).all() and np.isfinite(var_m2).all()):
+            # a solution without an honest covariance (e.g. a first calibration applied whatever
+            # its verdict) is no evidence: start over from the next calibration
+            self._last, self._intervals, self._confirming = None, [], None
+            return np.zeros_like(positions)
         mid = 0.5 * (start_s + end_s)
         at_start, at_mid, at_end = (self._cumulative_at(t) for t in (start_s, mid, end_s))
         now = self._cumulative[-1]
