@@ -228,3 +228,19 @@ def test_a_calibration_without_a_covariance_is_no_evidence_and_no_crash():
     assert tracker.rotation is None and tracker.fit is None
     _drive(tracker, odometry, world, rng, _matrix(0.3, False), lambda step: _matrix(-1.0, True), 400)
     assert tracker.rotation is not None
+
+
+def test_a_per_anchor_round_leaves_that_anchor_lacking_the_motion_since_its_midpoint():
+    """PANS per-anchor rounds re-locate one anchor at the round's midpoint; restart_drift clears
+    its held-back displacement, which must come back as the motion since the midpoint (else its
+    predicted variance forgets up to a round of motion: a role-switching round lasts seconds)."""
+    tracker, odometry, world, rng = _tracked(6)
+    moved = np.zeros((world.config.n_anchors, 2))
+    moved[1] = [0.1, 0.0]  # anchor 1 drives 0.1 m per 0.2 s step
+    for k in range(1, 31):
+        tracker.step(0.2 * k, moved)
+    odometry.restart_drift(1)  # the system re-located anchor 1 from a round over [2.0, 4.0] s
+    assert odometry.held_back[1] @ odometry.held_back[1] == 0.0
+    tracker.anchor_calibration_applied(1, 2.0, 4.0)
+    np.testing.assert_allclose(odometry.held_back[1], [1.5, 0.0])  # 6.0 - 3.0 s at 0.5 m/s
+    assert odometry.expected_drift_var_m2(2)[1] >= 1.5**2

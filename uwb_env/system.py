@@ -397,6 +397,7 @@ class LocalizationSystem:
         self.time_since_calibration_s[i] = 0.0
         self.steps_since_calibration[i] = 0
         self.world.odometry.restart_drift(i, since={k: v[i] for k, v in path.midpoint_drift().items()})
+        self.world.anchor_calibration_applied(i, path.times_s[0], path.times_s[-1])
         return None
 
     def _predicted_covariance(self) -> np.ndarray:

@@ -180,6 +180,14 @@ class OdometryFrameTracker:
         self._intervals, self._confirming = [], None
         return (now - at_mid) @ self.rotation.T
 
+    def anchor_calibration_applied(self, anchor: int, start_s: float, end_s: float) -> None:
+        """A per-anchor round re-located ``anchor`` (no evidence on the transform: the others
+        did not change): while displacements are held back, its estimate lacks the motion since
+        the round's midpoint, which its predicted variance must count again."""
+        if self.rotation is None:
+            at_mid = self._cumulative_at(0.5 * (start_s + end_s))
+            self.odometry.held_back[anchor] = self._cumulative[-1][anchor] - at_mid[anchor]
+
     def _monitor(self, interval) -> np.ndarray:
         """After the transform is known: each new interval must agree with it. The transform is
         carried into the frame the latest calibration was applied in; an interval that prefers

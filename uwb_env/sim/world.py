@@ -35,6 +35,10 @@ class RoundRunner:
         """A team calibration's solution was applied (the hardware backend fits its odometry
         frame from these; the simulator knows its frame)."""
 
+    def anchor_calibration_applied(self, anchor: int, start_s: float, end_s: float) -> None:
+        """Anchor ``anchor`` was re-located by a round from ``start_s`` to ``end_s`` (its estimate
+        is the solution at the midpoint plus the odometry since)."""
+
 
 def formation_xy(config: SimConfig, rng: np.random.Generator, copies: int | None = None) -> np.ndarray:
     """Initial anchor positions in the plane, (n, 2), or (copies, n, 2) for the batched env (the
