@@ -45,7 +45,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks._common import print_table, write_results  # noqa: E402
-from uwb_env.localization.odometry_frame import _matrix, fit_odometry_rotation  # noqa: E402
+from uwb_env.localization.odometry_frame import fit_odometry_rotation, planar_orthogonal  # noqa: E402
 
 
 def synthetic(trials: int, noise_scale: float, seed: int) -> dict:
@@ -56,8 +56,8 @@ def synthetic(trials: int, noise_scale: float, seed: int) -> dict:
         n = int(rng.integers(3, 9))
         world0 = rng.uniform(0, 10, (n, 2))
         moved = rng.normal(0, rng.uniform(0.2, 2.0), (n, 2))
-        q = _matrix(rng.uniform(-np.pi, np.pi), bool(rng.integers(2)))
-        other = _matrix(rng.uniform(-np.pi, np.pi), False)
+        q = planar_orthogonal(rng.uniform(-np.pi, np.pi), bool(rng.integers(2)))
+        other = planar_orthogonal(rng.uniform(-np.pi, np.pi), False)
         sig = rng.uniform(0.02, 0.2, n)
         real = noise_scale * sig[:, None]
         ref = world0 @ q.T + rng.normal(0, 1, (n, 2)) * real
@@ -159,8 +159,8 @@ def system_scenarios(episodes: int) -> dict:
         rows = []
         for e in range(episodes):
             rng = np.random.default_rng(1000 + e)
-            shared = _matrix(rng.uniform(-np.pi, np.pi), bool(rng.integers(2)))
-            frames = np.stack([_matrix(rng.uniform(-np.pi, np.pi), False) @ shared if own else shared
+            shared = planar_orthogonal(rng.uniform(-np.pi, np.pi), bool(rng.integers(2)))
+            frames = np.stack([planar_orthogonal(rng.uniform(-np.pi, np.pi), False) @ shared if own else shared
                                for _ in range(4)])
             rows.append(_system_episode(1000 + e, frames, sim, steps=300, every=15, mode=mode))
         decided = [r for r in rows if r["commits"]]
@@ -184,7 +184,7 @@ def emulated_episode(mode: str, seed: int, steps: int = 90) -> dict:
         "odometry": {"model": "uniform", "uniform_error_m": 0.005}}})
     scene = Scene(cfg.sim, seed=seed)
     emu, urls = standard_setup(scene)
-    to_odometry = _matrix(np.deg2rad(120.0), True)  # world -> the robots' odometry frame
+    to_odometry = planar_orthogonal(np.deg2rad(120.0), True)  # world -> the robots' odometry frame
     rng = np.random.default_rng(seed)
     last = [scene.anchors_true()]
 

@@ -9,7 +9,7 @@ import pytest
 
 from uwb_env.config import SimConfig
 from uwb_env.hardware.odometry_frame import HeldBackOdometry, OdometryFrameTracker
-from uwb_env.localization.odometry_frame import _matrix, fit_odometry_rotation
+from uwb_env.localization.odometry_frame import fit_odometry_rotation, planar_orthogonal
 from uwb_env.sim.world import World
 
 
@@ -18,8 +18,8 @@ def _draw(rng, n, motion_m):
     displacement in the odometry frame, the odometry frame's true transform, noise var)."""
     world0 = rng.uniform(0, 10, (n, 2))
     moved = rng.normal(0, motion_m, (n, 2))
-    q = _matrix(rng.uniform(-np.pi, np.pi), bool(rng.integers(2)))  # odometry -> reference frame
-    other = _matrix(rng.uniform(-np.pi, np.pi), False)  # reference frame -> the later calibration's
+    q = planar_orthogonal(rng.uniform(-np.pi, np.pi), bool(rng.integers(2)))  # odometry -> reference frame
+    other = planar_orthogonal(rng.uniform(-np.pi, np.pi), False)  # reference frame -> the later calibration's
     sig = rng.uniform(0.02, 0.2, n)  # per-axis std of each calibration's error
     ref = world0 @ q.T + rng.normal(0, 1, (n, 2)) * sig[:, None]
     later = ((world0 + moved) @ q.T) @ other.T + rng.normal(0, 3, 2) + rng.normal(0, 1, (n, 2)) * sig[:, None]
@@ -54,7 +54,7 @@ def test_a_rigid_team_motion_does_not_decide_the_frame():
     rng = np.random.default_rng(1)
     world0 = rng.uniform(0, 10, (5, 2))
     moved = np.tile([2.0, -1.0], (5, 1))  # ranges cannot see a translation of the whole team
-    q = _matrix(0.7, True)
+    q = planar_orthogonal(0.7, True)
     fit = fit_odometry_rotation(world0 @ q.T, (world0 + moved) @ q.T, moved, np.full(5, 1e-3))
     assert fit.status == "unobservable" and not fit.ok
 
@@ -85,8 +85,8 @@ def test_tracker_holds_motion_back_until_the_frame_is_known_then_rotates_it():
     world = World(cfg)
     rng = np.random.default_rng(3)
     world.reset(rng)
-    to_estimate = _matrix(np.deg2rad(120.0), True)  # world -> the calibration's frame
-    to_odometry = _matrix(np.deg2rad(-40.0), False)  # world -> the robots' odometry frame
+    to_estimate = planar_orthogonal(np.deg2rad(120.0), True)  # world -> the calibration's frame
+    to_odometry = planar_orthogonal(np.deg2rad(-40.0), False)  # world -> the robots' odometry frame
     odometry = HeldBackOdometry(cfg.odometry)
     odometry.reset(cfg.n_anchors, rng)
     tracker = OdometryFrameTracker(cfg)
@@ -131,8 +131,9 @@ def test_a_later_calibration_mirrored_against_its_reference_carries_the_frame_fl
     moves = [rng.normal(0, 1.5, (n, 2)) for _ in range(3)]
     for m in moves:
         world.append(world[-1] + m)
-    q = _matrix(0.9, False)  # odometry (= world here) -> the first calibration's frame
-    frames = [q, q, _matrix(-0.4, True) @ q, _matrix(-0.4, True) @ q]  # the third calibration mirrored
+    q = planar_orthogonal(0.9, False)  # odometry (= world here) -> the first calibration's frame
+    mirrored = planar_orthogonal(-0.4, True) @ q
+    frames = [q, q, mirrored, mirrored]  # the third calibration mirrored
     cal = [w @ f.T + rng.normal(0, sig, (n, 2)) for w, f in zip(world, frames, strict=True)]
     var = np.full(n, 4 * sig**2)
     fit = fit_odometry_rotation_chain([(cal[k], cal[k + 1], moves[k], var) for k in range(3)])
@@ -177,7 +178,7 @@ def test_robots_with_odometry_frames_of_their_own_are_never_given_one_transform(
     committed = 0
     for seed in range(6):
         tracker, odometry, world, rng = _tracked(10 + seed)
-        frames = np.stack([_matrix(a, False) for a in rng.uniform(-np.pi, np.pi, world.config.n_anchors)])
+        frames = np.stack([planar_orthogonal(a, False) for a in rng.uniform(-np.pi, np.pi, world.config.n_anchors)])
         cfg = world.config
         for step in range(1, 400):
             before = world.anchors_true.copy()
@@ -198,8 +199,8 @@ def test_a_known_transform_that_later_calibrations_contradict_is_given_up_then_r
     """The odometry frame turns by 90 degrees mid-episode (e.g. the odometry was re-initialised):
     the tracker must stop applying the old transform, then learn the new one."""
     tracker, odometry, world, rng = _tracked(3)
-    to_estimate = _matrix(np.deg2rad(120.0), True)
-    old, new = _matrix(np.deg2rad(-40.0), False), _matrix(np.deg2rad(50.0), False)
+    to_estimate = planar_orthogonal(np.deg2rad(120.0), True)
+    old, new = planar_orthogonal(np.deg2rad(-40.0), False), planar_orthogonal(np.deg2rad(50.0), False)
     _drive(tracker, odometry, world, rng, to_estimate, lambda step: old, 400)
     assert tracker.rotation is not None
     np.testing.assert_allclose(tracker.rotation, to_estimate @ old.T, atol=0.05)
@@ -215,7 +216,7 @@ def test_a_full_pooling_window_still_commits():
     (it used to compare their first frames, which the slide changes, and never committed)."""
     tracker, odometry, world, rng = _tracked(3)
     tracker.max_intervals = 2
-    to_estimate, to_odometry = _matrix(np.deg2rad(120.0), True), _matrix(np.deg2rad(-40.0), False)
+    to_estimate, to_odometry = planar_orthogonal(np.deg2rad(120.0), True), planar_orthogonal(np.deg2rad(-40.0), False)
     _drive(tracker, odometry, world, rng, to_estimate, lambda step: to_odometry, 400)
     assert tracker.rotation is not None
     np.testing.assert_allclose(tracker.rotation, to_estimate @ to_odometry.T, atol=0.05)
@@ -226,7 +227,8 @@ def test_a_calibration_without_a_covariance_is_no_evidence_and_no_crash():
     n = world.config.n_anchors
     tracker.calibration_applied(world.anchors_true.copy(), np.full(n, np.nan), 0.0, 0.0)  # e.g. a degenerate fit
     assert tracker.rotation is None and tracker.fit is None
-    _drive(tracker, odometry, world, rng, _matrix(0.3, False), lambda step: _matrix(-1.0, True), 400)
+    to_estimate, to_odometry = planar_orthogonal(0.3, False), planar_orthogonal(-1.0, True)
+    _drive(tracker, odometry, world, rng, to_estimate, lambda step: to_odometry, 400)
     assert tracker.rotation is not None
 
 

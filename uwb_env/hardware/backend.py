@@ -251,16 +251,15 @@ class HardwareWorld(RoundRunner):
     # -- the World interface -------------------------------------------------------------------
     def calibration_applied(self, positions: np.ndarray, var_m2: np.ndarray, start_s: float, end_s: float) -> None:
         """A team calibration was applied (``positions`` at its round's midpoint): fit the odometry
-        frame's transform while it is unknown (``odometry_frame.fit``, ``.rotation``)."""
-        if self.odometry_source is not None:
-            self.anchors_est += self.odometry_frame.calibration_applied(positions, var_m2, start_s, end_s)
+        frame's transform while it is unknown (``odometry_frame.fit``, ``.rotation``; without an
+        odometry source the tracker is in ``"calibration"`` mode and does nothing)."""
+        self.anchors_est += self.odometry_frame.calibration_applied(positions, var_m2, start_s, end_s)
 
     def anchor_calibration_applied(self, anchor: int, start_s: float, end_s: float) -> None:
         """A per-anchor round re-located ``anchor``: while displacements are held back, its
         estimate is the solution at the round's midpoint, so the motion since then is what it
         lacks (``restart_drift`` has just cleared it)."""
-        if self.odometry_source is not None:
-            self.odometry_frame.anchor_calibration_applied(anchor, start_s, end_s)
+        self.odometry_frame.anchor_calibration_applied(anchor, start_s, end_s)
 
     def set_estimate_frame(self, rotation: np.ndarray, origin: np.ndarray) -> None:
         self.frame_rotation, self.frame_origin = rotation, origin

@@ -33,6 +33,7 @@ from uwb_env.localization.odometry_frame import (
     OdometryFrameFit,
     chained_chi2,
     fit_odometry_rotation_chain,
+    planar_orthogonal,
     prepared_interval,
 )
 from uwb_env.sim.odometry import OdometryModel
@@ -208,7 +209,5 @@ class OdometryFrameTracker:
             self.reverted += 1
             self._intervals, self._confirming = [], None
             return np.zeros_like(reference)
-        c, s = np.cos(carried[0]), np.sin(carried[0])
-        rot = np.array([[c, -s], [s, c]])
-        self.rotation = rot @ np.diag([1.0, -1.0]) if hand[0] else rot
+        self.rotation = planar_orthogonal(float(carried[0]), bool(hand[0]))
         return np.zeros_like(reference)

@@ -78,7 +78,8 @@ def _complex(points: np.ndarray) -> np.ndarray:
     return points[..., 0] + 1j * points[..., 1]
 
 
-def _matrix(angle: float, reflected: bool) -> np.ndarray:
+def planar_orthogonal(angle: float, reflected: bool) -> np.ndarray:
+    """rot(angle), times diag(1, -1) first when ``reflected``: e^{i angle} z, or of conj(z)."""
     c, s = np.cos(angle), np.sin(angle)
     rot = np.array([[c, -s], [s, c]])
     return rot @ np.diag([1.0, -1.0]) if reflected else rot
@@ -199,8 +200,8 @@ def fit_odometry_rotation_chain(intervals: list, margin_chi2: float = 16.0,
     else:
         status = "ok"
     wrapped = float(np.angle(np.exp(1j * angle)))
-    rotation = _matrix(wrapped, reflected)
-    current = _matrix(float(carried[0]), bool(carried_hand[0]))
+    rotation = planar_orthogonal(wrapped, reflected)
+    current = planar_orthogonal(float(carried[0]), bool(carried_hand[0]))
     return OdometryFrameFit(rotation=rotation, reflected=reflected, angle_rad=wrapped, angle_std_rad=angle_std,
                             alignment=current @ rotation.T, chi2=best, dof=dof, rival_chi2=rival,
                             alignment_margin_chi2=float(gap[0]), status=status)
