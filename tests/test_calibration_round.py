@@ -11,11 +11,17 @@ def test_duration_matches_the_paper_latencies():
     assert timing.duration_s(4, 50) == pytest.approx(2.5, rel=0.10)
 
 
-def test_duration_scales_with_pairs_times_k():
+def test_the_idle_time_is_spent_per_pair_as_in_the_firmware():
+    """ss_init_main.c: every pair ends with an F broadcast and its ~65 ms RX timeout, so a round
+    costs n (n - 1) (idle + K exchange): 8 anchors take 56/12 of the 4-anchor round at every K
+    (a per-initiator idle would give 2.3 s, not 4.2 s, at K = 5)."""
     timing = RoundTiming.fit(CalibrationConfig())
-    exchange_part = lambda n, k: timing.duration_s(n, k) - n * timing.handoff_s  # noqa: E731
-    assert exchange_part(8, 5) / exchange_part(4, 5) == pytest.approx(56 / 12)
-    assert exchange_part(4, 50) / exchange_part(4, 5) == pytest.approx(10)
+    assert timing.pair_idle_s == pytest.approx(0.0602, abs=5e-4)  # the firmware's timeout: 65 ms
+    assert timing.exchange_s == pytest.approx(0.00296, abs=5e-5)
+    for k in (5, 50):
+        assert timing.duration_s(8, k) / timing.duration_s(4, k) == pytest.approx(56 / 12)
+        assert timing.duration_s(16, k) / timing.duration_s(4, k) == pytest.approx(240 / 12)
+    assert timing.duration_s(8, 5) == pytest.approx(4.2)
 
 
 def test_schedule_order_and_counts():
@@ -24,7 +30,15 @@ def test_schedule_order_and_counts():
     assert len(times) == 4 * 3 * 5
     assert np.all(np.diff(times) > 0)
     assert list(ini[:15]) == [0] * 15  # anchor 0 initiates first
-    assert times[-1] == pytest.approx(timing.duration_s(4, 5))
+    # the firmware's counter-clockwise poll order (IDs 1 -> 4, 3, 2; 2 -> 1, 4, 3; ...)
+    pairs = [(int(i), int(j)) for i, j in zip(ini[::5], resp[::5], strict=True)]
+    assert [(i + 1, j + 1) for i, j in pairs] == [(1, 4), (1, 3), (1, 2), (2, 1), (2, 4), (2, 3),
+                                                  (3, 2), (3, 1), (3, 4), (4, 3), (4, 2), (4, 1)]
+    # K exchanges back to back, then the pair's idle time; the round ends after the last one
+    gaps = np.diff(times)
+    assert np.allclose(gaps.reshape(-1)[np.arange(len(gaps)) % 5 != 4], timing.exchange_s)
+    assert np.allclose(gaps[4::5], timing.pair_idle_s + timing.exchange_s)
+    assert times[-1] == pytest.approx(timing.duration_s(4, 5) - timing.pair_idle_s)
     assert np.all(ini != resp)
 
 
@@ -54,11 +68,12 @@ def test_robots_keep_moving_during_the_round(rng):
     start = world.anchors_true.copy()
     matrix, _ = world.run_calibration_round(50)
     end = world.anchors_true
-    d_start = np.linalg.norm(start[0] - start[1])
-    d_end = np.linalg.norm(end[0] - end[1])
-    measured = world.range_model.correct(matrix.mean_m[0, 1])
+    d_start = np.linalg.norm(start[0] - start[3])
+    d_end = np.linalg.norm(end[0] - end[3])
+    measured = world.range_model.correct(matrix.mean_m[0, 3])
     assert not np.isclose(d_start, d_end, atol=0.05)
-    # anchor 0 initiates first, so its ranges to 1 are taken near the round's start
+    # anchor 0 initiates first and polls anchor 3 first (the firmware's counter-clockwise
+    # order), so those ranges are taken at the round's start
     assert abs(measured - d_start) < abs(measured - d_end)
 
 

@@ -95,17 +95,17 @@ def _longest_busy_run(result) -> int:
 
 
 def test_the_drift_rule_does_not_starve_the_tags_in_3d():
-    """``three_d`` test seed 1000011: the first calibration leaves anchor 2 with ~0.58 m of height
+    """``three_d`` test seed 1000022: the first calibration leaves an anchor with a large height
     std. On the total, the rule re-locates it back to back (each round holds the tags) for
-    ~119 steps (94 since calibrations carry the NLOS and carry variance) and the episode passes
-    1 m of mean tag error; on the drift it waits."""
+    124 steps and the episode passes 1 m of mean tag error (1.5 m); on the drift it waits
+    (0.64 m). (Seed 1000011 showed it before the rounds took the firmware's per-pair timing.)"""
     from uwb_env.training.suite import load_suite
 
     scenario = load_suite()["three_d"]
     runs = {}
     for spec in ("per_anchor_threshold:0.3", "per_anchor_drift:0.3"):
         env = parallel_env(action_mode="per_anchor", max_cycles=200, **scenario["config"])
-        runs[spec] = rollout(env, make_policy(spec), seed=1_000_011)
+        runs[spec] = rollout(env, make_policy(spec), seed=1_000_022)
     assert _longest_busy_run(runs["per_anchor_threshold:0.3"]) > 80  # the failure this rule avoids
     assert _longest_busy_run(runs["per_anchor_drift:0.3"]) < 20
     assert runs["per_anchor_drift:0.3"].tag_error_m.mean() < 1.0

@@ -270,9 +270,11 @@ class CalibrationConfig(ConfigBase):
     """A calibration round: every anchor initiates in turn to every other anchor.
 
     ``measurements_per_pair`` (K) SS-TWR exchanges per ordered pair. The round's duration is
-    ``n * handoff_s + n * (n - 1) * K * exchange_s``; the two constants are fitted (exactly,
-    two equations, two unknowns) to ``reference_latencies_s`` measured with
-    ``reference_n_anchors`` anchors: the paper's 0.9 s at K=5 and 2.5 s at K=50 for 4 anchors.
+    ``n * (n - 1) * (pair_idle_s + K * exchange_s)``: as in the reference firmware, every pair
+    ends with an ``F`` broadcast and its RX timeout (``sim.calibration_round``). The two
+    constants are fitted (exactly, two equations, two unknowns) to ``reference_latencies_s``
+    measured with ``reference_n_anchors`` anchors: the paper's 0.9 s at K=5 and 2.5 s at K=50
+    for 4 anchors (60 ms idle and 2.96 ms per exchange).
     """
 
     measurements_per_pair: int = 5

@@ -215,7 +215,7 @@ class TiersAnchorDevice:
         nominal = self.round_s if self.round_s is not None else timing.duration_s(4, self.k)
         slot = nominal * self.faults.round_slowdown / len(self._pairs)
         poll = timing.exchange_s * self.faults.round_slowdown
-        timeout = slot - self.k * poll  # handoff_s / 3 = 60 ms at every K for the fitted model
+        timeout = slot - self.k * poll  # the fitted pair_idle_s (60 ms) at every K
         if timeout < 0.1 * slot:  # a round_s override shorter than the polls (tests): split the slot
             poll, timeout = 0.5 * slot / self.k, 0.5 * slot
         # The measured round lengths the timing model is fitted to include the firmware's

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from uwb_env.hardware.errors import ParseError
+from uwb_env.sim.calibration_round import pair_order
 
 START = b"S"
 N_DEVICES = 4  # the firmware hard-wires a 4x4 matrix
@@ -43,8 +44,9 @@ def firmware_pair_order(n: int = N_DEVICES) -> list[tuple[int, int]]:
     ``Autocalibration/*/ss_init_main.c``: anchors are initiators in ID order; initiator ID i
     polls the responders "in counter-clockwise order" i-1, i-2, i-3 (mod 4: ID 1 -> 4, 3, 2;
     ID 2 -> 1, 4, 3; ID 3 -> 2, 1, 4; ID 4 -> 3, 2, 1), each until MAX_ITER answers have
-    arrived, then broadcasts that pair's mean and std (``F`` frame) and moves on."""
-    return [(i, (i - s) % n) for i in range(n) for s in range(1, n)]
+    arrived, then broadcasts that pair's mean and std (``F`` frame) and moves on. The
+    simulator's rounds use the same order (``sim.calibration_round.pair_order``)."""
+    return pair_order(n)
 
 
 @dataclass(frozen=True)

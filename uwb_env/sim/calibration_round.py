@@ -1,12 +1,17 @@
 """Timing and measurement of one calibration round.
 
-Every anchor is initiator in turn (index order, the paper's counter-clockwise order); each
-initiator runs K SS-TWR exchanges with every other anchor, then hands the token on. Robots
-keep moving, so each exchange ranges the positions at its own timestamp.
+The round of the reference firmware (``TIERS/dwm1001-uwb-firmware``,
+``Autocalibration/*/ss_init_main.c``): every anchor is initiator in turn (index order); each
+initiator polls the others "in counter-clockwise order" (i-1, i-2, ... mod n), K answered
+SS-TWR exchanges per pair, then broadcasts that pair's mean and std in an ``F`` frame and waits
+out its RX timeout (the frame expects an answer that never comes) before the next pair; the
+last pair's ``F`` hands the initiator role on. So the idle time is spent once per *pair*: a
+round of n anchors is n (n - 1) pair slots of ``pair_idle_s + K exchange_s``. Robots keep
+moving, so each exchange ranges the positions at its own timestamp.
 
 A *per-anchor* round is one initiator's block of that schedule alone (``initiators=[i]``): the
-anchor re-locates against the others, at 1/n of a team round's channel time (one hand-off and
-(n - 1) K exchanges), with the same fitted constants.
+anchor re-locates against the others, at 1/n of a team round's channel time ((n - 1) pair
+slots), with the same fitted constants.
 """
 
 from __future__ import annotations
@@ -25,9 +30,13 @@ from uwb_env.sim.ranging import RangeModel
 
 @dataclass(frozen=True)
 class RoundTiming:
-    """duration(n, K) = n * handoff_s + n (n - 1) K * exchange_s."""
+    """duration(n, K) = n (n - 1) (pair_idle_s + K exchange_s): one slot per ordered pair.
 
-    handoff_s: float
+    pair_idle_s: the idle time after each pair (the ``F`` broadcast's RX timeout; about 60 ms
+    fitted, the firmware's timeout is 65 ms); exchange_s: one answered exchange with its share
+    of retries (about 3 ms)."""
+
+    pair_idle_s: float
     exchange_s: float
 
     @classmethod
@@ -37,18 +46,21 @@ class RoundTiming:
         (k1, d1), (k2, d2) = config.reference_latencies_s
         pairs = n * (n - 1)
         exchange = (d2 - d1) / (pairs * (k2 - k1))
-        handoff = (d1 - pairs * k1 * exchange) / n
-        if exchange <= 0 or handoff < 0:
+        idle = (d1 - pairs * k1 * exchange) / pairs
+        if exchange <= 0 or idle < 0:
             raise ValueError(
                 f"calibration.reference_latencies_s={config.reference_latencies_s!r}: "
-                f"gives non-physical timing (exchange {exchange:.4g} s, handoff {handoff:.4g} s)"
+                f"gives non-physical timing (exchange {exchange:.4g} s, pair idle {idle:.4g} s)"
             )
-        return cls(handoff_s=float(handoff), exchange_s=float(exchange))
+        return cls(pair_idle_s=float(idle), exchange_s=float(exchange))
+
+    def pair_slot_s(self, measurements_per_pair: int) -> float:
+        """One pair's share of a round: K exchanges, then the idle time."""
+        return self.pair_idle_s + measurements_per_pair * self.exchange_s
 
     def duration_s(self, n_anchors: int, measurements_per_pair: int, n_initiators: int | None = None) -> float:
-        n, k = n_anchors, measurements_per_pair
-        m = n if n_initiators is None else n_initiators
-        return m * self.handoff_s + m * (n - 1) * k * self.exchange_s
+        m = n_anchors if n_initiators is None else n_initiators
+        return m * (n_anchors - 1) * self.pair_slot_s(measurements_per_pair)
 
     def schedule(self, n_anchors: int, measurements_per_pair: int, initiators=None):
         """Per exchange: (time offset from round start (s), initiator, responder), in order
@@ -65,15 +77,23 @@ def _schedule(timing: RoundTiming, n: int, k: int, initiators: tuple | None):
     order = np.arange(n) if initiators is None else np.asarray(initiators, dtype=int)
     if order.size == 0 or order.min() < 0 or order.max() >= n or len(set(order.tolist())) != order.size:
         raise ValueError(f"initiators={list(initiators or ())!r}: must be distinct anchor indices in [0, {n})")
-    slot = np.repeat(np.arange(len(order)), (n - 1) * k)  # position of the initiator in turn
-    initiator = order[slot]
-    responder_block = np.array([[j for j in range(n) if j != i] for i in order]).reshape(len(order), n - 1)
-    responder = np.repeat(responder_block, k, axis=1).ravel()
-    index_in_block = np.tile(np.arange((n - 1) * k), len(order))
-    times = (slot + 1) * timing.handoff_s + (slot * (n - 1) * k + index_in_block + 1) * timing.exchange_s
+    pairs = np.array(pair_order(n, order), dtype=int).reshape(-1, 2)
+    initiator, responder = np.repeat(pairs[:, 0], k), np.repeat(pairs[:, 1], k)
+    # pair p's exchanges start at p slots, one exchange apart; its idle time follows them
+    pair = np.repeat(np.arange(len(pairs)), k)
+    times = pair * timing.pair_slot_s(k) + (np.tile(np.arange(k), len(pairs)) + 1) * timing.exchange_s
     for shared in (times, initiator, responder):
         shared.flags.writeable = False
     return times, initiator, responder
+
+
+def pair_order(n: int, initiators=None) -> list[tuple[int, int]]:
+    """The ordered pairs (initiator, responder) in the order a round ranges them: the
+    ``initiators`` (default all, in index order) in turn, each polling the others in the
+    firmware's counter-clockwise order i-1, i-2, ... (mod n) (``ss_init_main.c``: ID 1 -> 4, 3,
+    2; ID 2 -> 1, 4, 3; ...)."""
+    order = range(n) if initiators is None else initiators
+    return [(int(i), (int(i) - s) % n) for i in order for s in range(1, n)]
 
 
 def exchange_ranges(times_s, t0_s, t1_s, anchors_t0, anchors_t1, initiator, responder, range_model, rng):
