@@ -149,6 +149,41 @@ def test_corrected_range_below_zero_is_a_measurement():
         calibrate_anchors(d, range_std_m=0.05)
 
 
+def test_a_carried_range_below_zero_within_the_carry_error_is_a_measurement():
+    """A range carried along the odometry (a 64-anchor round takes minutes) carries the
+    carry's error too: below zero within it is a measurement, in the full solver and in the
+    batched one; beyond it, still an error."""
+    from uwb_env.localization.batched_calibration import symmetric_arrays
+
+    x = np.array([[0.0, 0.0], [8.0, 0.5], [3.0, 7.0], [3.3, 7.0], [9.0, 9.0]])
+    n = len(x)
+    mean = distances(x)
+    mean[2, 3] = mean[3, 2] = -1.5  # 0.3 m apart, carried with a 0.5 m std
+    count = np.full((n, n), 5) - 5 * np.eye(n, dtype=int)
+    carry = np.full((n, n), 1e-4)
+    carry[2, 3] = carry[3, 2] = 0.25
+    matrix = RangeMatrix(mean, np.full((n, n), 0.05), count, carry_var_m2=carry)
+    res = calibrate_anchors(matrix, range_std_m=0.05)
+    assert np.isfinite(res.positions).all()
+    complete, *_ = symmetric_arrays(mean[None], count[None], 0.05, carry[None])
+    assert complete[0]
+    with pytest.raises(InvalidRangeError, match=r"\(2, 3\)"):  # without the carry: beyond the noise
+        calibrate_anchors(RangeMatrix(mean, np.full((n, n), 0.05), count), range_std_m=0.05)
+    mean[2, 3] = mean[3, 2] = -4.0  # beyond 1 m + 5 carry stds
+    with pytest.raises(InvalidRangeError, match=r"\(2, 3\)"):
+        calibrate_anchors(RangeMatrix(mean, np.full((n, n), 0.05), count, carry_var_m2=carry), range_std_m=0.05)
+    assert not symmetric_arrays(mean[None], count[None], 0.05, carry[None])[0][0]
+
+
+def test_a_64_anchor_reset_with_minutes_long_rounds_does_not_raise():
+    """bench_episodes' never-raises seed 98: 64 anchors, team rounds of 5 minutes (the
+    firmware's per-pair timing); a range carried to the pooled rounds' midpoint came out at
+    -1.7 m and the first calibration raised InvalidRangeError."""
+    env = parallel_env(max_cycles=3, sim={"n_anchors": 64, "n_tags": 10})
+    env.reset(seed=98)
+    env.step({a: 0 for a in env.agents})
+
+
 def test_close_anchors_never_break_a_reset():
     for seed in (0, 1):
         env = parallel_env(sim={"n_anchors": 32, "n_tags": 3})

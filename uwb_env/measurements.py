@@ -10,6 +10,20 @@ import numpy as np
 # A bias-corrected range can dip below zero next to an anchor (noise around a true ~0 m): that
 # is a measurement. Far below zero it cannot be the corrected range of a real distance.
 NEGATIVE_RANGE_TOLERANCE_M = 1.0
+# A range carried along the odometry to another instant (``RangeMatrix.carry_var_m2``) adds the
+# carry's error: this many of its standard deviations on top of the tolerance (a 64-anchor
+# round takes minutes, and the carry's std grows to metres).
+CARRY_TOLERANCE_SIGMAS = 5.0
+
+
+def negative_range_floor_m(carry_var_m2=None):
+    """The lowest corrected range (m) taken as a measurement: -NEGATIVE_RANGE_TOLERANCE_M, less
+    CARRY_TOLERANCE_SIGMAS carry standard deviations where ranges were carried (array-shaped
+    like ``carry_var_m2``; NaN carry variances count as none)."""
+    if carry_var_m2 is None:
+        return -NEGATIVE_RANGE_TOLERANCE_M
+    carry = np.nan_to_num(np.asarray(carry_var_m2, dtype=float), nan=0.0, posinf=0.0)
+    return -NEGATIVE_RANGE_TOLERANCE_M - CARRY_TOLERANCE_SIGMAS * np.sqrt(np.maximum(carry, 0.0))
 
 
 @lru_cache(maxsize=64)
@@ -115,8 +129,11 @@ class RangeMatrix:
         mean_flat, count_flat = self.mean_m.ravel(), self.count.ravel()
         ma, mb = mean_flat.take(upper), mean_flat.take(lower)
         ca, cb = count_flat.take(upper), count_flat.take(lower)
-        # NaN propagates through minimum and fails ">= -tol"; inf fails "< inf"
-        if not (np.minimum(ca, cb).min() > 0 and np.minimum(ma, mb).min() >= -NEGATIVE_RANGE_TOLERANCE_M
+        carry = self.carry_var_m2
+        carry_ab = () if carry is None else (carry.ravel().take(upper), carry.ravel().take(lower))
+        floor = -NEGATIVE_RANGE_TOLERANCE_M if carry is None else negative_range_floor_m(np.maximum(*carry_ab))
+        # NaN propagates through minimum and fails ">= floor"; inf fails "< inf"
+        if not (np.minimum(ca, cb).min() > 0 and (np.minimum(ma, mb) >= floor).all()
                 and np.maximum(ma, mb).max() < np.inf):
             return None
         if std_m is not None:
@@ -129,8 +146,6 @@ class RangeMatrix:
             info_b = cb / np.maximum(std_flat.take(lower), min_std_m) ** 2
         if not (info_a + info_b).min() > 0:  # NaN stds
             return None
-        carry = self.carry_var_m2
-        carry_ab = () if carry is None else (carry.ravel().take(upper), carry.ravel().take(lower))
         mean, var = combine_directions(ma, mb, info_a, info_b, *carry_ab)
         return pairs, mean, var
 

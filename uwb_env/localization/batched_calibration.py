@@ -376,14 +376,16 @@ def symmetric_arrays(mean_m: np.ndarray, count: np.ndarray, range_std_m: float,
     once (and the matrices' (K, N, N) ``carry_var_m2``, or None): (complete (K,) bool, pairs
     (P, 2), dist (K, P), var (K, P)); a team is complete when every ordered pair was measured
     with a finite mean >= the solver's negative tolerance."""
-    from uwb_env.measurements import NEGATIVE_RANGE_TOLERANCE_M, combine_directions
+    from uwb_env.measurements import combine_directions, negative_range_floor_m
 
     n = mean_m.shape[1]
     iu, ju = _upper_pairs(n)
     ma, mb = mean_m[:, iu, ju], mean_m[:, ju, iu]
     ca, cb = count[:, iu, ju].astype(float), count[:, ju, iu].astype(float)
+    floor = negative_range_floor_m(None if carry_var_m2 is None
+                                   else np.maximum(carry_var_m2[:, iu, ju], carry_var_m2[:, ju, iu]))
     with np.errstate(invalid="ignore"):
-        complete = ((np.minimum(ca, cb) > 0).all(1) & (np.minimum(ma, mb) >= -NEGATIVE_RANGE_TOLERANCE_M).all(1)
+        complete = ((np.minimum(ca, cb) > 0).all(1) & (np.minimum(ma, mb) >= floor).all(1)
                     & (np.maximum(ma, mb) < np.inf).all(1))
     info_a, info_b = ca / range_std_m**2, cb / range_std_m**2
     with np.errstate(invalid="ignore", divide="ignore"):  # incomplete teams: NaN / inf, not used

@@ -59,7 +59,7 @@ from uwb_env.localization.errors import (
 from uwb_env.localization.pair_solver import PairStructure, pair_structure, solve_pair_ranges
 from uwb_env.localization.rigidity import generically_globally_rigid, generically_rigid
 from uwb_env.localization.robust import check_loss, robust_cost
-from uwb_env.measurements import NEGATIVE_RANGE_TOLERANCE_M, RangeMatrix, _pair_index
+from uwb_env.measurements import NEGATIVE_RANGE_TOLERANCE_M, RangeMatrix, _pair_index, negative_range_floor_m
 
 GAUGES = ("anchor0", "prior")
 INITIALIZERS = ("auto", "trilateration", "mds")
@@ -1112,12 +1112,16 @@ def _pair_data(ranges, range_std_m, min_range_std_m):
     if mean.shape[0] < 2:
         raise TooFewAnchorsError(f"{mean.shape[0]} anchors: a calibration needs at least 3")
     off_diagonal = ~np.eye(mean.shape[0], dtype=bool)
-    negative = (mean < -NEGATIVE_RANGE_TOLERANCE_M) & off_diagonal  # NaN compares False
+    # carried ranges (a RangeMatrix's carry_var_m2) may lie further below zero: the carry's error
+    floor = negative_range_floor_m(getattr(matrix, "carry_var_m2", None))
+    negative = (mean < floor) & off_diagonal  # NaN compares False
     if negative.any():
         i, j = np.argwhere(negative)[0]
+        below = -np.broadcast_to(floor, mean.shape)[i, j]
         raise InvalidRangeError(
             f"range ({i}, {j}) = {mean[i, j]!r}: negative beyond the noise of a corrected range "
-            f"(-{NEGATIVE_RANGE_TOLERANCE_M} m); raw ranges must be corrected first")
+            f"(-{below:.3g} m: {NEGATIVE_RANGE_TOLERANCE_M} m, plus the carry's error where the range was "
+            f"carried); raw ranges must be corrected first")
     if range_std_m is not None:
         pairs, dist, var = matrix.symmetric(std_m=float(range_std_m))
     else:
