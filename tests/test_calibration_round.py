@@ -12,11 +12,11 @@ def test_duration_matches_the_paper_latencies():
 
 
 def test_the_idle_time_is_spent_per_pair_as_in_the_firmware():
-    """ss_init_main.c: every pair ends with an F broadcast and its ~65 ms RX timeout, so a round
+    """ss_init_main.c: every pair ends with an F broadcast and its 66.7 ms RX timeout, so a round
     costs n (n - 1) (idle + K exchange): 8 anchors take 56/12 of the 4-anchor round at every K
     (a per-initiator idle would give 2.3 s, not 4.2 s, at K = 5)."""
     timing = RoundTiming.fit(CalibrationConfig())
-    assert timing.pair_idle_s == pytest.approx(0.0602, abs=5e-4)  # the firmware's timeout: 65 ms
+    assert timing.pair_idle_s == pytest.approx(0.0602, abs=5e-4)  # the firmware's timeout: 66.7 ms
     assert timing.exchange_s == pytest.approx(0.00296, abs=5e-5)
     for k in (5, 50):
         assert timing.duration_s(8, k) / timing.duration_s(4, k) == pytest.approx(56 / 12)

@@ -331,7 +331,7 @@ class TiersTagDriver:
     good (until a reset), any other byte pauses it. After power-up it prints its banner and
     waits. So the driver sends ``S`` (idempotent: the flag is latched) when no line arrives,
     never ``F``, and again after a reboot (the banner, a port reconnection or a silence longer
-    than ``watchdog_s``: an anchor that does not answer costs 25 polls of 65 ms per line).
+    than ``watchdog_s``: an anchor that does not answer costs 25 polls of 66.7 ms per line).
 
     The same surface as :class:`PansShellTagDriver` for :class:`~uwb_env.hardware.backend.HardwareWorld`:
     ``poll()`` returns the reports that arrived, ``latest`` / ``latest_time`` hold the newest.

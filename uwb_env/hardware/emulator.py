@@ -37,7 +37,7 @@ import numpy as np
 from uwb_env.config import ConfigBase, SimConfig
 from uwb_env.hardware import tlv
 from uwb_env.hardware.pans_shell import AnchorRange, format_lec
-from uwb_env.hardware.tiers import BANNER_INIT, ROLE_SWAP, encode_matrix, firmware_pair_order
+from uwb_env.hardware.tiers import BANNER_INIT, ROLE_SWAP, RX_TIMEOUT_S, encode_matrix, firmware_pair_order
 from uwb_env.hardware.tiers_tag import encode_tag_line
 from uwb_env.sim import World
 
@@ -310,14 +310,14 @@ class TiersTagDevice:
     banner, then nothing until ``S``; the flag is latched (one poll per main-loop iteration
     while the last byte read is ``S``, another byte pauses, ``F`` prints ``END`` and stops the
     tag until a reboot). Each anchor in turn gets polls until 5 answers (one SS-TWR exchange
-    plus the 1 ms inter-ranging delay each) or 25 failed polls in a row (65 ms RX timeout each:
+    plus the 1 ms inter-ranging delay each) or 25 failed polls in a row (66.7 ms RX timeout each:
     255 bytes). The running sum is reset only after an anchor that answered 5 times, so a
     timed-out anchor's partial sum leaks into the next anchor's mean (the firmware's quirk).
     ``silent_after``: anchor ID -> answers it gives per cycle before falling silent
     (``{3: 0}``: anchor 3 never answers); ranges are the SS-TWR ranges with the fitted bias.
     """
 
-    RX_TIMEOUT_S = 0.065  # dwt_setrxtimeout(65000) in main.c
+    RX_TIMEOUT_S = RX_TIMEOUT_S  # dwt_setrxtimeout(65000) in main.c: 65,000 UWB us (512/499.2 MHz) = 66.7 ms
     RNG_DELAY_S = 0.001  # RNG_DELAY_MS
     MAX_ITER, TIMEOUT_POLLS = 5, 25
 

@@ -22,7 +22,7 @@ ranges whose std is implausibly large; the driver counts them.
 Host -> tag (``main.c``): the single byte ``S`` starts polling (latched: the tag keeps polling,
 one exchange per main-loop iteration, while the last byte read is ``S``); ``F`` prints ``END``
 and stops the tag until a reset. After power-up the tag prints ``Singled Sided Two Way Ranging
-INIT`` and waits for ``S``. A poll that gets no answer waits for the 65 ms RX timeout.
+INIT`` and waits for ``S``. A poll that gets no answer waits for the 66.7 ms RX timeout.
 
 The responders answer only frames of the TIERS builds (preamble code 10, their own frame
 layout): a stock-PANS tag cannot range to them, nor a TIERS tag to PANS anchors.

@@ -2,12 +2,16 @@
 
 The round of the reference firmware (``TIERS/dwm1001-uwb-firmware``,
 ``Autocalibration/*/ss_init_main.c``): every anchor is initiator in turn (index order); each
-initiator polls the others "in counter-clockwise order" (i-1, i-2, ... mod n), K answered
-SS-TWR exchanges per pair, then broadcasts that pair's mean and std in an ``F`` frame and waits
-out its RX timeout (the frame expects an answer that never comes) before the next pair; the
-last pair's ``F`` hands the initiator role on. So the idle time is spent once per *pair*: a
-round of n anchors is n (n - 1) pair slots of ``pair_idle_s + K exchange_s``. Robots keep
-moving, so each exchange ranges the positions at its own timestamp.
+initiator polls the others "in counter-clockwise order" (i-1, i-2, ... mod n) until K SS-TWR
+exchanges have been answered, then broadcasts that pair's mean and std in an ``F`` frame and
+waits out its RX timeout (66.7 ms; the frame expects an answer that never comes) before the
+next pair; the last pair's ``F`` hands the initiator role on. So the idle time is spent once
+per *pair*: a round of n anchors is n (n - 1) pair slots of ``pair_idle_s + K exchange_s``.
+Robots keep moving, so each exchange ranges the positions at its own timestamp.
+
+Simplification: the simulator makes K attempts per pair and a lost one is missing from the
+pair's count, where the firmware retries until K answers (each failed poll another RX
+timeout). The fitted constants are the measured rounds' averages, retries included.
 
 A *per-anchor* round is one initiator's block of that schedule alone (``initiators=[i]``): the
 anchor re-locates against the others, at 1/n of a team round's channel time ((n - 1) pair
@@ -32,9 +36,9 @@ from uwb_env.sim.ranging import RangeModel
 class RoundTiming:
     """duration(n, K) = n (n - 1) (pair_idle_s + K exchange_s): one slot per ordered pair.
 
-    pair_idle_s: the idle time after each pair (the ``F`` broadcast's RX timeout; about 60 ms
-    fitted, the firmware's timeout is 65 ms); exchange_s: one answered exchange with its share
-    of retries (about 3 ms)."""
+    pair_idle_s: the idle time after each pair (the ``F`` broadcast's RX timeout: 60 ms fitted;
+    the firmware's ``dwt_setrxtimeout(65000)``, in UWB microseconds, is 66.7 ms plus a 1 ms
+    sleep); exchange_s: one exchange (2.96 ms fitted, about 2.7 ms from the firmware's delays)."""
 
     pair_idle_s: float
     exchange_s: float
