@@ -169,9 +169,11 @@ def test_a_hardware_round_running_past_its_estimate_holds_the_channel_until_it_e
 
 
 def test_a_finished_hardware_round_gives_each_pair_its_slot_for_the_carry():
-    """The firmware ranges its pairs one after another in equal slots: the backend gives the
-    estimator each pair's slot middle over the round's measured duration (it used to give none,
-    so moving teams' ranges were never carried to the round's midpoint)."""
+    """The firmware ranges its pairs one after another, each its K polls then its F broadcast's
+    timeout: the backend gives the estimator each pair's polls' mean time in the timing model's
+    schedule, stretched to the round's measured duration (it used to give none, so moving
+    teams' ranges were never carried to the round's midpoint; then each slot's middle, 30 ms
+    after the polls)."""
     from uwb_env.hardware.backend import HardwareRound, HardwareWorld
     from uwb_env.sim.round_path import pair_mean_times_s
 
@@ -184,6 +186,7 @@ def test_a_finished_hardware_round_gives_each_pair_its_slot_for_the_carry():
 
     world = HardwareWorld.__new__(HardwareWorld)
     world.config = SimConfig()
+    world.timing = RoundTiming.fit(world.config.calibration)
     world.means_unwrapped = world.means_wrap_ambiguous = 0
     world.round = HardwareRound(1.0, 0.9, 4, pairs=firmware_pair_order())
     world.anchor, world.role_switching = _Answers(), False
@@ -191,10 +194,14 @@ def test_a_finished_hardware_round_gives_each_pair_its_slot_for_the_carry():
     world._poll_round()
     rnd = world.round
     assert rnd.done and rnd.times_s is not None
-    np.testing.assert_allclose(rnd.times_s, 1.0 + (np.arange(12) + 0.5) * 0.1)  # 12 slots of 0.1 s, in order
+    # 12 slots of 0.1 s (the nominal 75 ms stretched by 1.2 / 0.9), in order; each pair's five
+    # polls take the first 15 ms of its nominal slot (mean at 3 exchanges), the rest is the timeout
+    stretch = 1.2 / 0.9
+    polls_mean = 3 * world.timing.exchange_s * stretch
+    np.testing.assert_allclose(rnd.times_s, 1.0 + np.arange(12) * 0.1 + polls_mean)
     times = pair_mean_times_s(4, rnd.times_s, rnd.initiator, rnd.responder)
     first, last = firmware_pair_order()[0], firmware_pair_order()[-1]
-    assert times[first] == pytest.approx(1.05) and times[last] == pytest.approx(2.15)
+    assert times[first] == pytest.approx(1.0 + polls_mean) and times[last] == pytest.approx(2.1 + polls_mean)
 
 
 def _static_scene(seed=0):
@@ -275,6 +282,7 @@ def test_repeated_cells_are_dropped_from_the_round_not_credited_to_it():
 
     world = HardwareWorld.__new__(HardwareWorld)
     world.config = SimConfig()
+    world.timing = RoundTiming.fit(world.config.calibration)
     world.means_unwrapped = world.means_wrap_ambiguous = world.stale_cells_dropped = 0
     world.round = HardwareRound(0.0, 0.9, 4, pairs=firmware_pair_order())
     world.anchor, world.role_switching = _Answers(), False

@@ -237,11 +237,22 @@ class HardwareWorld(RoundRunner):
             k = self.config.calibration.measurements_per_pair
             rnd.matrix = RangeMatrix(np.where(valid, mean, np.nan), np.where(valid, message.std_m, np.nan),
                                      np.where(valid, k, 0))
-            # The firmware ranges its pairs one after another in equal slots (tiers.firmware_pair_order;
-            # retries stretch the round, which the matrix's arrival time includes): each pair at its
-            # slot's middle, so the system carries the ranges to the round's midpoint as in simulation.
-            pairs = len(rnd.initiator)
-            rnd.times_s = rnd.start_time_s + (np.arange(pairs) + 0.5) / pairs * (self.time_s - rnd.start_time_s)
+            # The firmware ranges its pairs one after another (tiers.firmware_pair_order), each its K
+            # polls and then its F broadcast's timeout: the simulator's schedule (RoundTiming), whose
+            # pair order is the firmware's. Each pair at its polls' mean time in that schedule,
+            # stretched to the round's measured duration (retries lengthen it, and the matrix's
+            # arrival time includes them), so the system carries the ranges to the round's midpoint
+            # as in simulation.
+            rnd.times_s = rnd.start_time_s + self._pair_offsets_s(rnd) * (self.time_s - rnd.start_time_s)
+
+    def _pair_offsets_s(self, rnd: HardwareRound) -> np.ndarray:
+        """Each ordered pair's mean exchange time in a team round of the timing model, as a
+        fraction of the round (aligned with ``rnd.initiator`` / ``rnd.responder``)."""
+        n, k = len(np.unique(rnd.initiator)), self.config.calibration.measurements_per_pair
+        offsets, initiator, responder = self.timing.schedule(n, k)
+        if not (np.array_equal(initiator[::k], rnd.initiator) and np.array_equal(responder[::k], rnd.responder)):
+            raise RuntimeError("a TIERS round whose pair order is not the timing model's (both are the firmware's)")
+        return offsets.reshape(-1, k).mean(1) / self.timing.duration_s(n, k)
 
     def _correction(self, correct_bias: bool) -> RangeModel:
         if correct_bias == self.range_model.config.correct_bias:
