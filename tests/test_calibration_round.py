@@ -92,3 +92,18 @@ def test_a_per_anchor_round_is_one_initiator_block_of_the_team_round():
     assert rnd.end_time_s == pytest.approx(10.0 + timing.duration_s(5, 3, 1)) and rnd.times_s[-1] <= rnd.end_time_s
     with pytest.raises(ValueError, match="initiators"):
         timing.schedule(5, 3, initiators=[7])
+
+
+def test_a_round_holds_the_channel_until_its_last_pair_timeout_ends(rng):
+    """The last exchange comes pair_idle_s before the round's end (the last pair's F broadcast
+    still waits out its timeout): the round is done only when its time is over. A per-anchor
+    round of 4 anchors (0.225 s; last exchange at 0.165 s) spans two 0.2 s steps, not one."""
+    world = World(SimConfig())
+    world.reset(rng)
+    rnd = world.start_calibration_round(initiators=[1])
+    world.step()
+    assert rnd.progress == 1.0 and not rnd.done  # every exchange taken, the timeout still running
+    world.step()
+    assert rnd.done and world.time_s >= rnd.end_time_s
+    _, steps = world.run_calibration_round()
+    assert steps == int(np.ceil(world.timing.duration_s(4, 5) / 0.2 - 1e-9))

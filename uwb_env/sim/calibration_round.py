@@ -162,10 +162,13 @@ class CalibrationRound:
         self.end_time_s = start_time_s + timing.duration_s(n_anchors, measurements_per_pair, n_init)
         self.ranges_m = np.full(len(offsets), np.nan)
         self._next = 0
+        self._time_s = start_time_s  # how far ``advance`` has taken the round
 
     @property
     def done(self) -> bool:
-        return self._next >= len(self.times_s)
+        """Every exchange taken and the round's time over: the last pair's ``F`` timeout holds
+        the channel after its last exchange (up to ``pair_idle_s`` more)."""
+        return self._next >= len(self.times_s) and self._time_s >= self.end_time_s - 1e-9
 
     @property
     def progress(self) -> float:
@@ -181,6 +184,7 @@ class CalibrationRound:
         rng: np.random.Generator,
     ) -> None:
         """Take the exchanges timed in (t0, t1]; positions are interpolated linearly."""
+        self._time_s = max(self._time_s, t1_s)
         stop = int(np.searchsorted(self.times_s, t1_s, side="right"))
         if stop <= self._next:
             return
