@@ -372,3 +372,39 @@ def test_an_infinite_carry_on_an_unmeasured_direction_counts_for_nothing():
     mean, var = combine_directions(np.array([5.0]), np.array([np.nan]), np.array([400.0]), np.array([0.0]),
                                    np.array([0.01]), np.array([np.inf]))
     assert np.isfinite(var).all() and var[0] == 1.0 / 400.0 + 0.01
+
+
+def test_each_direction_of_a_carried_pair_meets_its_own_floor_on_every_path():
+    """The complete-round fast path, the batched solve and the general validation take each
+    direction against its own carry's floor (the fast paths took the larger of the two: -2 m
+    with no carry passed where the other direction had a 1 m carry std)."""
+    from uwb_env.localization.batched_calibration import symmetric_arrays
+
+    x = np.array([[0.0, 0.0], [8.0, 0.5], [3.0, 7.0], [3.3, 7.0], [9.0, 9.0]])
+    n = len(x)
+    mean = distances(x)
+    mean[2, 3], mean[3, 2] = -2.0, 0.3
+    count = np.full((n, n), 5) - 5 * np.eye(n, dtype=int)
+    carry = np.full((n, n), 1e-4)
+    carry[3, 2] = 1.0  # only the (3, 2) direction was carried far
+    matrix = RangeMatrix(mean, np.full((n, n), 0.05), count, carry_var_m2=carry)
+    assert matrix.complete_symmetric(std_m=0.05) is None
+    assert not symmetric_arrays(mean[None], count[None], 0.05, carry[None])[0][0]
+    with pytest.raises(InvalidRangeError, match=r"\(2, 3\)"):
+        calibrate_anchors(matrix, range_std_m=0.05)
+
+
+def test_a_per_anchor_round_takes_a_carried_range_below_zero_within_its_variance():
+    from uwb_env.localization.relocation import relocate_anchor
+
+    others = np.array([[0.0, 0.0], [8.0, 0.5], [3.0, 7.0], [9.0, 9.0]])
+    me = np.array([3.3, 7.0])
+    ranges = np.linalg.norm(others - me, axis=1)
+    ranges[2] = -1.5  # 0.3 m away, carried with a 0.5 m std
+    var = np.full(4, 1e-3)
+    var[2] = 0.25
+    fix = relocate_anchor(ranges, others, var)
+    assert np.isfinite(fix.position).all()
+    var[2] = 1e-3  # the same range with only its noise: beyond the floor
+    with pytest.raises(InvalidRangeError, match=r"ranges_m\[2\]"):
+        relocate_anchor(ranges, others, var)

@@ -131,10 +131,14 @@ class RangeMatrix:
         ca, cb = count_flat.take(upper), count_flat.take(lower)
         carry = self.carry_var_m2
         carry_ab = () if carry is None else (carry.ravel().take(upper), carry.ravel().take(lower))
-        floor = -NEGATIVE_RANGE_TOLERANCE_M if carry is None else negative_range_floor_m(np.maximum(*carry_ab))
-        # NaN propagates through minimum and fails ">= floor"; inf fails "< inf"
-        if not (np.minimum(ca, cb).min() > 0 and (np.minimum(ma, mb) >= floor).all()
-                and np.maximum(ma, mb).max() < np.inf):
+        # NaN fails ">= floor"; inf fails "< inf"; each direction against its own floor (as the
+        # general path's validation in calibrate_anchors)
+        if carry is None:
+            above = np.minimum(ma, mb).min() >= -NEGATIVE_RANGE_TOLERANCE_M
+        else:
+            above = bool((ma >= negative_range_floor_m(carry_ab[0])).all()
+                         and (mb >= negative_range_floor_m(carry_ab[1])).all())
+        if not (np.minimum(ca, cb).min() > 0 and above and np.maximum(ma, mb).max() < np.inf):
             return None
         if std_m is not None:
             info_a, info_b = ca / std_m**2, cb / std_m**2

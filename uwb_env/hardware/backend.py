@@ -73,8 +73,9 @@ class HardwareRound:
     """A round running on the devices; the same surface as the simulator's round."""
 
     def __init__(self, start_time_s: float, expected_s: float, n: int, initiators: tuple[int, ...] | None = None,
-                 pairs: list[tuple[int, int]] | None = None):
+                 pairs: list[tuple[int, int]] | None = None, measurements_per_pair: int | None = None):
         self.start_time_s = start_time_s
+        self.measurements_per_pair = measurements_per_pair  # K the round was started with (None: the config's)
         self.end_time_s = start_time_s + expected_s
         self.expected_s = expected_s
         self.initiators = initiators  # None: a team round; (i,): anchor i re-located against the others
@@ -234,7 +235,7 @@ class HardwareWorld(RoundRunner):
                 self.stale_cells_dropped += int(np.count_nonzero(message.repeated & valid))
                 valid &= ~message.repeated
             np.fill_diagonal(valid, False)
-            k = self.config.calibration.measurements_per_pair
+            k = rnd.measurements_per_pair or self.config.calibration.measurements_per_pair
             rnd.matrix = RangeMatrix(np.where(valid, mean, np.nan), np.where(valid, message.std_m, np.nan),
                                      np.where(valid, k, 0))
             # The firmware ranges its pairs one after another (tiers.firmware_pair_order), each its K
@@ -248,7 +249,7 @@ class HardwareWorld(RoundRunner):
     def _pair_offsets_s(self, rnd: HardwareRound) -> np.ndarray:
         """Each ordered pair's mean exchange time in a team round of the timing model, as a
         fraction of the round (aligned with ``rnd.initiator`` / ``rnd.responder``)."""
-        n, k = len(np.unique(rnd.initiator)), self.config.calibration.measurements_per_pair
+        n, k = len(np.unique(rnd.initiator)), rnd.measurements_per_pair or self.config.calibration.measurements_per_pair
         offsets, initiator, responder = self.timing.schedule(n, k)
         if not (np.array_equal(initiator[::k], rnd.initiator) and np.array_equal(responder[::k], rnd.responder)):
             raise RuntimeError("a TIERS round whose pair order is not the timing model's (both are the firmware's)")
@@ -327,7 +328,8 @@ class HardwareWorld(RoundRunner):
         if initiators is not None:
             raise ValueError("initiators: the TIERS firmware ranges every pair in one round; per-anchor rounds need "
                              "the all-PANS deployment (connect_pans, role switching)")
-        self.round = HardwareRound(self.time_s, self.timing.duration_s(n, k), n, pairs=firmware_pair_order(n))
+        self.round = HardwareRound(self.time_s, self.timing.duration_s(n, k), n, pairs=firmware_pair_order(n),
+                                   measurements_per_pair=k)
         try:
             self.anchor.start_round()
         except HardwareError as err:  # e.g. the anchor's port is away: a failed round, reported in infos

@@ -382,10 +382,11 @@ def symmetric_arrays(mean_m: np.ndarray, count: np.ndarray, range_std_m: float,
     iu, ju = _upper_pairs(n)
     ma, mb = mean_m[:, iu, ju], mean_m[:, ju, iu]
     ca, cb = count[:, iu, ju].astype(float), count[:, ju, iu].astype(float)
-    floor = negative_range_floor_m(None if carry_var_m2 is None
-                                   else np.maximum(carry_var_m2[:, iu, ju], carry_var_m2[:, ju, iu]))
+    # each direction against its own floor (carried ranges: the carry's error too)
+    floor_a = negative_range_floor_m(None if carry_var_m2 is None else carry_var_m2[:, iu, ju])
+    floor_b = negative_range_floor_m(None if carry_var_m2 is None else carry_var_m2[:, ju, iu])
     with np.errstate(invalid="ignore"):
-        complete = ((np.minimum(ca, cb) > 0).all(1) & (np.minimum(ma, mb) >= floor).all(1)
+        complete = ((np.minimum(ca, cb) > 0).all(1) & (ma >= floor_a).all(1) & (mb >= floor_b).all(1)
                     & (np.maximum(ma, mb) < np.inf).all(1))
     info_a, info_b = ca / range_std_m**2, cb / range_std_m**2
     with np.errstate(invalid="ignore", divide="ignore"):  # incomplete teams: NaN / inf, not used

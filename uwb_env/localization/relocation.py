@@ -27,6 +27,7 @@ import numpy as np
 from scipy.special import chdtrc, chdtri
 
 from uwb_env.localization.errors import GeometryError, InvalidRangeError, SolverArgumentError, TooFewAnchorsError
+from uwb_env.measurements import negative_range_floor_m
 
 STATUSES = ("ok", "ambiguous", "poor_fit", "not_converged")
 
@@ -120,12 +121,15 @@ def relocate_anchor(
         raise InvalidRangeError(f"ranges_m: expected shape ({k},), got {ranges.shape}")
     if not np.isfinite(others).all():
         raise SolverArgumentError("others: anchor positions must be finite")
-    if np.isinf(ranges).any() or (ranges < -1.0).any():
-        j = int(np.flatnonzero(np.isinf(ranges) | (ranges < -1.0))[0])
-        raise InvalidRangeError(f"ranges_m[{j}] = {ranges[j]!r}: not a corrected range")
     var = np.broadcast_to(np.asarray(range_var_m2, dtype=float), (k,)).copy()
     if not np.all(np.isfinite(var) & (var > 0)):
         raise SolverArgumentError(f"range_var_m2={range_var_m2!r}: must be finite and > 0")
+    # below zero by the tolerance plus the range's own error (a range carried to the round's
+    # midpoint carries that error in its variance) is a measurement, as in calibrate_anchors
+    floor = negative_range_floor_m(var)
+    if np.isinf(ranges).any() or (ranges < floor).any():
+        j = int(np.flatnonzero(np.isinf(ranges) | (ranges < floor))[0])
+        raise InvalidRangeError(f"ranges_m[{j}] = {ranges[j]!r}: not a corrected range (below {floor[j]:.3g} m)")
     if not (isinstance(max_iterations, int) and max_iterations >= 1):
         raise SolverArgumentError(f"max_iterations={max_iterations!r}: must be an integer >= 1")
     if not 0 < fit_alpha < 1:
