@@ -112,9 +112,13 @@ def test_shipped_model_runs_through_the_hook():
     from uwb_env.training.evaluate import default_policies
 
     assert shipped_model("ppo_scheduler").is_file()
-    # the main job's learned entry: the residual scheduler on the tuned per-anchor threshold
-    tuned = json.loads(DEFAULT_TUNED.read_text())["tuned"]["per_anchor_threshold"].partition(":")[2]
-    assert f"learned:anchor_set@{tuned}" in default_policies()
+    # the main job's learned entry: the residual scheduler on the base rule that tuned best (the
+    # highest validation return of the per-anchor rules and the team threshold), at its threshold
+    from uwb_env.agents.per_anchor import BASE_FAMILIES, learned_base
+
+    record = json.loads(DEFAULT_TUNED.read_text())
+    family = max(BASE_FAMILIES, key=lambda f: record["families"][f]["best_return"])
+    assert f"learned:anchor_set@{learned_base(record['tuned'][family])}" in default_policies()
     policy = make_policy("learned:ppo_scheduler")  # the earlier 4-anchor model stays loadable
     # trained on free motion (the old default, now training/scenarios/free_motion.yml)
     free = {"anchor_motion": {"model": "heading"}, "tag_motion": {"model": "heading"}}
