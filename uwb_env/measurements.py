@@ -133,11 +133,8 @@ class RangeMatrix:
         carry_ab = () if carry is None else (carry.ravel().take(upper), carry.ravel().take(lower))
         # NaN fails ">= floor"; inf fails "< inf"; each direction against its own floor (as the
         # general path's validation in calibrate_anchors)
-        if carry is None:
-            above = np.minimum(ma, mb).min() >= -NEGATIVE_RANGE_TOLERANCE_M
-        else:
-            above = bool((ma >= negative_range_floor_m(carry_ab[0])).all()
-                         and (mb >= negative_range_floor_m(carry_ab[1])).all())
+        floor_a, floor_b = (negative_range_floor_m(c) for c in (carry_ab or (None, None)))
+        above = bool((ma >= floor_a).all() and (mb >= floor_b).all())
         if not (np.minimum(ca, cb).min() > 0 and above and np.maximum(ma, mb).max() < np.inf):
             return None
         if std_m is not None:

@@ -244,12 +244,12 @@ class HardwareWorld(RoundRunner):
             # stretched to the round's measured duration (retries lengthen it, and the matrix's
             # arrival time includes them), so the system carries the ranges to the round's midpoint
             # as in simulation.
-            rnd.times_s = rnd.start_time_s + self._pair_offsets_s(rnd) * (self.time_s - rnd.start_time_s)
+            rnd.times_s = rnd.start_time_s + self._pair_offsets_s(rnd, k) * (self.time_s - rnd.start_time_s)
 
-    def _pair_offsets_s(self, rnd: HardwareRound) -> np.ndarray:
-        """Each ordered pair's mean exchange time in a team round of the timing model, as a
-        fraction of the round (aligned with ``rnd.initiator`` / ``rnd.responder``)."""
-        n, k = len(np.unique(rnd.initiator)), rnd.measurements_per_pair or self.config.calibration.measurements_per_pair
+    def _pair_offsets_s(self, rnd: HardwareRound, k: int) -> np.ndarray:
+        """Each ordered pair's mean exchange time in a team round of the timing model with K = ``k``,
+        as a fraction of the round (aligned with ``rnd.initiator`` / ``rnd.responder``)."""
+        n = self.config.n_anchors
         offsets, initiator, responder = self.timing.schedule(n, k)
         if not (np.array_equal(initiator[::k], rnd.initiator) and np.array_equal(responder[::k], rnd.responder)):
             raise RuntimeError("a TIERS round whose pair order is not the timing model's (both are the firmware's)")
