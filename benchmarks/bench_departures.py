@@ -1,0 +1,307 @@
+"""What a deployment can see of the ground-truth rollout's gains (issue: a learned scheduler that
+beats the best tuned heuristic).
+
+The rollout reference (``rollout:60@<tuned rule>``) gains over the tuned rule with ground truth
+(``bench_scheduling``: the headroom). ``training/train_distilled.py`` records, at each of its
+decisions, what the anchors observe and the measured gain of each departure from the rule (a
+team round now; holding off until the next decision), and fits E[gain | observation]. This
+benchmark asks whether that expectation is ever positive, from the recorded data of one or more
+such runs (``--runs``; nothing is simulated for part 1):
+
+1. **Departure gains by what is observed.** Over every recorded decision: the mean gain of each
+   departure (summed reward over the rollout's horizon, paired with the rule's on the same
+   futures) and, for each team feature of ``agents/distilled.py``, per quintile of that feature.
+   A deployable policy can gain from a departure only where it can tell the situations apart:
+   a bin of some feature whose mean gain is positive beyond its standard error. The best bin
+   over all features (``best_bin_gain_<move>``, with its ``_se`` and feature) is the figure:
+   with 36 features x 5 bins, a bin about 2.5 SE above zero is what chance alone gives. Beside
+   it, the rollout's own departures: how often it takes them and their measured gain per
+   episode, and the feature means where it departed vs where it followed the rule.
+2. **The gain model's fit** (``run.json`` of each run): held-out mean squared error against
+   predicting the mean gain (``gain_model_r2_seed_<s>`` = 1 - their ratio), and the margin the
+   validation seeds chose (``None``: never depart, the rule itself).
+3. **``--oracle``: a rule on the truth.** The per-anchor threshold rule applied to ground
+   truth instead of the drift each anchor's covariance predicts: ``true_error:T`` on its true
+   position error (``infos["anchor_error_m"]``), ``true_drift:T`` on the true change of its
+   error since its last calibration (what a round would take away), at a grid of thresholds,
+   and ``paused_tags_team:a``, the drift rule plus a team round whenever every tag stands still
+   (its true pause state) and some anchor's drift is past a of the threshold; against the tuned
+   drift rule on the same validation seeds of the default scenario (paired): whether knowing
+   each anchor's error, or when the tags would lose nothing to a round, would help a rule at all
+   (``oracle_best_improvement_<family>``: 1 - IQM / the rule's, > 0 where it would).
+
+    python benchmarks/bench_departures.py --runs runs/distilled_v2/seed0 runs/distilled_v2/seed1 \\
+        runs/distilled_v2/seed2 [--oracle] [--quick]
+
+Writes benchmarks/results/bench_departures.json (``_quick`` with --quick).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import print_table, write_results  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+VALIDATION_SEED = 500_000  # the default scenario's validation block (never test seeds)
+ORACLE_THRESHOLDS_M = (0.1, 0.15, 0.2, 0.3, 0.45)
+SUMMARY_FEATURES = ("max_drift_over_threshold", "mean_drift_over_threshold", "max_own_range_residual_m",
+                    "mean_tag_fix_rms_residual_m", "min_time_since_calibration_s", "base_share_team")
+
+
+def load_runs(runs: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict]]:
+    """Features, gains (team, wait) and the rollout's chosen move of every recorded decision of
+    ``runs``, and each run's run.json."""
+    from uwb_env.agents.distilled import parse_base
+    from uwb_env.training.train_distilled import gain_table
+
+    X, Y, chosen, records = [], [], [], []
+    for run in runs:
+        record = json.loads((Path(run) / "run.json").read_text())
+        files = sorted((Path(run) / "data").glob("ep*.npz"))
+        if not files:
+            raise FileNotFoundError(f"--runs {run}: no collected episodes in {run}/data (train_distilled.py --out)")
+        _, threshold_m = parse_base(record["base"])
+        x, y, _ = gain_table(files, threshold_m, int(record["args"]["horizon_steps"]))
+        X.append(x)
+        Y.append(y)
+        chosen.append(np.concatenate([np.load(f)["chosen"] for f in files]))
+        records.append(record)
+    return np.concatenate(X), np.concatenate(Y), np.concatenate(chosen), records
+
+
+def binned_gains(X: np.ndarray, Y: np.ndarray, n_bins: int = 5) -> list[dict]:
+    """Per team feature and quintile: the decisions' mean gain of each move and its SE."""
+    from uwb_env.agents.distilled import MOVES, TEAM_FEATURES
+
+    rows = []
+    for j, name in enumerate(TEAM_FEATURES):
+        x = X[:, j]
+        edges = np.unique(np.quantile(x, np.linspace(0.0, 1.0, n_bins + 1)))
+        if len(edges) < 2:
+            continue  # constant over the data (the team size on one scenario)
+        which = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, len(edges) - 2)
+        for b in range(len(edges) - 1):
+            mask = which == b
+            if mask.sum() < 30:
+                continue
+            for k, move in enumerate(MOVES):
+                g = Y[mask, k]
+                rows.append({"feature": name, "bin": b, "low": float(edges[b]), "high": float(edges[b + 1]),
+                             "move": move, "n": int(mask.sum()), "mean": float(g.mean()),
+                             "se": float(g.std(ddof=1) / np.sqrt(len(g)))})
+    return rows
+
+
+class TrueErrorRule:
+    """GROUND TRUTH diagnostic: the per-anchor threshold rule (re-locate an anchor past the
+    threshold; a team round when half the team is past it) on each anchor's true position
+    error instead of its predicted drift."""
+
+    uses_ground_truth = True
+    action_mode = "per_anchor"
+
+    def __init__(self, threshold_m: float, team_fraction: float = 0.5):
+        self.threshold_m, self.team_fraction = float(threshold_m), float(team_fraction)
+
+    def reset(self, seed: int | None = None) -> None:
+        pass
+
+    def act(self, observations, infos):
+        from uwb_env.agents.per_anchor import NOTHING, RELOCATE_ME, TEAM_ROUND
+
+        agents = list(observations)
+        error = np.array([infos[a]["anchor_error_m"] for a in agents])
+        stale = error > self.threshold_m
+        team = stale.sum() >= self.team_fraction * len(agents)
+        actions = np.where(team, TEAM_ROUND, np.where(stale, RELOCATE_ME, NOTHING))
+        return {a: int(x) for a, x in zip(agents, actions, strict=True)}
+
+
+class TrueDriftRule(TrueErrorRule):
+    """GROUND TRUTH diagnostic: the drift rule (``per_anchor_drift``) on each anchor's *true*
+    drift since its last calibration: the change of its error vector (estimate minus truth, the
+    truth rigidly aligned to the estimates as the env's errors are: the shape's error, not the
+    frame's) since the step its calibration finished, instead of the drift its
+    covariance predicts. What a new calibration would take away, known exactly."""
+
+    def bind(self, env) -> None:
+        self.system = env.system
+
+    def reset(self, seed: int | None = None) -> None:
+        self._since = None
+        self._at_calibration = None
+
+    def act(self, observations, infos):
+        from uwb_env.agents.baselines import _FROM_END
+        from uwb_env.agents.per_anchor import NOTHING, RELOCATE_ME, TEAM_ROUND
+
+        agents = list(observations)
+        system = self.system
+        error = system.world.anchors_est - system._truth(system.world.anchors_true, "constellation")
+        since = np.array([observations[a][_FROM_END["time_since_calibration_s"]] for a in agents])
+        if self._at_calibration is None:
+            self._at_calibration = error.copy()
+        else:
+            renewed = since < self._since  # its clock restarted: a calibration of it just finished
+            self._at_calibration[renewed] = error[renewed]
+        self._since = since
+        stale = np.linalg.norm(error - self._at_calibration, axis=1) > self.threshold_m
+        team = stale.sum() >= self.team_fraction * len(agents)
+        actions = np.where(team, TEAM_ROUND, np.where(stale, RELOCATE_ME, NOTHING))
+        return {a: int(x) for a, x in zip(agents, actions, strict=True)}
+
+
+class PausedTagsTeamRule(TrueErrorRule):
+    """GROUND TRUTH diagnostic: the tuned drift rule, plus a team round as soon as every tag is
+    standing still (its true pause state) and some anchor's predicted drift is past ``alpha``
+    of the rule's threshold: a round while no tag moves costs the tags nothing."""
+
+    def __init__(self, alpha: float, rule_threshold_m: float = 0.3):
+        self.alpha, self.rule_threshold_m = float(alpha), float(rule_threshold_m)
+
+    def bind(self, env) -> None:
+        self.system = env.system
+
+    def act(self, observations, infos):
+        from uwb_env.agents.baselines import _FROM_END
+        from uwb_env.agents.per_anchor import TEAM_ROUND, threshold_actions
+
+        agents = list(observations)
+        pred = np.array([observations[a][_FROM_END["predicted_position_std_m"]] for a in agents], dtype=np.float64)
+        cal = np.array([observations[a][_FROM_END["calibration_position_std_m"]] for a in agents], dtype=np.float64)
+        actions = threshold_actions(pred, cal, self.rule_threshold_m, measure="drift")
+        drift = np.sqrt(np.maximum(pred * pred - cal * cal, 0.0))
+        tags_paused = bool((self.system.world.motion.pause_left_s[len(agents):] > 0).all())
+        if tags_paused and drift.max() > self.alpha * self.rule_threshold_m:
+            actions = np.full(len(agents), TEAM_ROUND)
+        return {a: int(x) for a, x in zip(agents, actions, strict=True)}
+
+
+ORACLES = {"true_error": TrueErrorRule, "true_drift": TrueDriftRule, "paused_tags_team": PausedTagsTeamRule}
+# per family: thresholds (m), or the share of the rule's threshold for paused_tags_team
+ORACLE_GRID = {"true_error": ORACLE_THRESHOLDS_M, "true_drift": ORACLE_THRESHOLDS_M, "paused_tags_team": (0.6, 0.8)}
+
+
+def _oracle_episode(job) -> dict:
+    from uwb_env.training.evaluate import run_episode, run_policy_episode
+
+    spec, seed, rule_threshold_m = job
+    config = {"max_cycles": 500}
+    family, _, value = spec.partition(":")
+    if family == "paused_tags_team":
+        out = run_policy_episode(PausedTagsTeamRule(float(value), rule_threshold_m), seed, config)
+    elif family in ORACLES:
+        out = run_policy_episode(ORACLES[family](float(value)), seed, config)
+    else:
+        out = run_episode(spec, seed, config)
+    return {"spec": spec, "seed": seed, "tag_m": out["mean_tag_error_m"], "return": out["return"],
+            "calibrations_per_min": out["calibrations_per_min"]}
+
+
+def oracle(rule: str, n_seeds: int, workers: int) -> tuple[dict, list[list]]:
+    """Every oracle of ``ORACLE_GRID`` and ``rule`` on the same ``n_seeds`` validation seeds:
+    figures and table rows (IQM tag error, its paired improvement over the rule with a
+    bootstrap CI, return, calibration rate)."""
+    from uwb_env.evaluation.stats import iqm, paired_relative_improvement
+
+    family, _, value = rule.partition(":")
+    if family != "per_anchor_drift":
+        raise ValueError(f"--rule={rule!r}: the oracles are variants of the drift rule (per_anchor_drift:T)")
+    rule_threshold_m = float(value)
+    specs = [rule] + [f"{family}:{t:g}" for family in ORACLES for t in ORACLE_GRID[family]]
+    jobs = [(s, VALIDATION_SEED + i, rule_threshold_m) for s in specs for i in range(n_seeds)]
+    with ProcessPoolExecutor(workers) as pool:
+        episodes = list(pool.map(_oracle_episode, jobs, chunksize=4))
+    by = {s: sorted((e for e in episodes if e["spec"] == s), key=lambda e: e["seed"]) for s in specs}
+    figures, rows = {"oracle_rule": rule, "oracle_seeds": n_seeds}, []
+    rule_tag = np.array([e["tag_m"] for e in by[rule]])
+    best = {family: -np.inf for family in ORACLES}
+    for s in specs:
+        tag = np.array([e["tag_m"] for e in by[s]])
+        value = float(iqm(tag))
+        gain = paired_relative_improvement(tag, rule_tag)
+        ret = float(np.mean([e["return"] for e in by[s]]))
+        rate = float(np.mean([e["calibrations_per_min"] for e in by[s]]))
+        rows.append([s, value, f"{gain.value:+.1%} [{gain.ci_low:+.1%}, {gain.ci_high:+.1%}]", ret, rate])
+        key = s.replace(":", "_")
+        figures.update({f"oracle_iqm_m_{key}": value, f"oracle_improvement_{key}": gain.value,
+                        f"oracle_improvement_{key}_ci_low": gain.ci_low,
+                        f"oracle_improvement_{key}_ci_high": gain.ci_high,
+                        f"oracle_return_{key}": ret, f"oracle_calibrations_per_min_{key}": rate})
+        if s != rule:
+            family = s.partition(":")[0]
+            best[family] = max(best[family], gain.value)
+    figures.update({f"oracle_best_improvement_{family}": float(v) for family, v in best.items()})
+    return figures, rows
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--runs", nargs="+", default=[str(ROOT / f"runs/distilled_v2/seed{i}") for i in range(3)],
+                   help="train_distilled.py output directories (their data/ and run.json)")
+    p.add_argument("--oracle", action="store_true", help="also run part 3 (simulates episodes)")
+    p.add_argument("--rule", default="per_anchor_drift:0.3", help="the tuned rule the oracle is compared with")
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--quick", action="store_true")
+    a = p.parse_args()
+    started = time.perf_counter()
+    from uwb_env.agents.distilled import MOVES, TEAM_FEATURES
+
+    X, Y, chosen, records = load_runs(a.runs)
+    figures: dict = {"runs": " ".join(str(Path(r).resolve().relative_to(ROOT)) if Path(r).resolve().is_relative_to(ROOT)
+                                      else r for r in a.runs), "decisions": int(len(X)),
+                     "scenario": records[0]["scenario"], "base": records[0]["base"]}
+    bins = binned_gains(X, Y)
+    rows = []
+    for k, move in enumerate(MOVES):
+        g = Y[:, k]
+        best = max((r for r in bins if r["move"] == move), key=lambda r: r["mean"] / max(r["se"], 1e-12))
+        figures.update({f"mean_gain_{move}": float(g.mean()),
+                        f"mean_gain_{move}_se": float(g.std(ddof=1) / np.sqrt(len(g))),
+                        f"best_bin_gain_{move}": best["mean"], f"best_bin_gain_{move}_se": best["se"],
+                        f"best_bin_{move}_feature": f"{best['feature']} [{best['low']:.3g}, {best['high']:.3g}]",
+                        f"rollout_departure_rate_{move}": float((chosen == move).mean())})
+        rows.append([move, g.mean(), (chosen == move).mean(), best["mean"], best["se"],
+                     f"{best['feature']} [{best['low']:.3g}, {best['high']:.3g}]"])
+    print_table(f"departure gains over the rule ({len(X):,} decisions; summed reward over the horizon)",
+                ["move", "mean gain", "rollout takes", "best bin gain", "its SE", "best bin"], rows)
+    rows = []
+    for name in SUMMARY_FEATURES:
+        j = TEAM_FEATURES.index(name)
+        rows.append([name] + [float(X[chosen == m, j].mean()) if (chosen == m).any() else float("nan")
+                              for m in ("base", *MOVES)])
+    print_table("feature means where the rollout followed the rule / departed", ["feature", "rule", *MOVES], rows)
+    rows = []
+    for record in records:
+        fit, seed = record["fit"], record["seed"]
+        r2 = 1.0 - fit["held_out_mse"] / fit["held_out_mse_of_mean"]
+        figures[f"gain_model_r2_seed_{seed}"] = float(r2)
+        figures[f"margin_seed_{seed}"] = record["margin"]
+        figures[f"rollout_gain_per_episode_seed_{seed}"] = record["rollout"]["gain_per_episode_of_its_departures"]
+        rows.append([seed, record["rollout"]["episodes"], r2, record["rollout"]["gain_per_episode_of_its_departures"],
+                     str(record["margin"])])
+    print_table("per training seed", ["seed", "episodes", "gain model R^2", "rollout gain/episode", "margin"], rows)
+    if a.oracle:
+        more, rows = oracle(a.rule, 10 if a.quick else 100, a.workers)
+        figures.update(more)
+        print_table(f"rules on ground truth vs {a.rule} (default scenario, validation seeds; improvement: "
+                    "1 - IQM / the rule's, paired, 95 % bootstrap CI)",
+                    ["rule", "IQM tag m", "improvement", "return", "calibrations/min"], rows)
+    figures["bench_seconds"] = time.perf_counter() - started
+    write_results("bench_departures_quick" if a.quick else "bench_departures", figures, a.quick)
+
+
+if __name__ == "__main__":
+    main()
