@@ -29,7 +29,8 @@ the solver assumes it is chi-square with rank degrees of freedom (the likelihood
 about 1 whatever the likelihood's shape. A gap near 1 with a NEES well above it says the
 likelihood is honest and its *linearization* (the covariance) is not: a likelihood far from
 quadratic, e.g. heights of near-coplanar anchors in 3D. A gap well above 1 says the ranges'
-model (variance, outliers, motion during the round) is off.
+model (variance, outliers, motion during the round) is off. ``ambiguous_share_<cfg>``: of
+the later rounds reported ok, the share flagged ambiguous (left out of the scores above).
 
     python benchmarks/bench_consistency.py [--quick]
 
@@ -63,20 +64,25 @@ def name_of(dim: int, n: int, motion: str, nlos) -> str:
     return f"{dim}d_n{n}_{motion}_{'clean' if nlos == 0.0 else 'nlos'}"
 
 
-def run_config(dim: int, n: int, motion: str, nlos, episodes: int, steps: int) -> tuple[np.ndarray, ...]:
+def run_config(dim: int, n: int, motion: str, nlos, episodes: int, steps: int) -> tuple:
     """NEES, mean squared anchor error (m^2) and the truth's chi-square minus the fit's, of
-    every ok, unambiguous later round of ``episodes`` episodes."""
+    every ok, unambiguous later round of ``episodes`` episodes; and the share of the later
+    rounds reported ok that were flagged ambiguous (not scored)."""
     import uwb_env.team_state as team_state  # the later rounds' solve (both envs)
     from uwb_env import parallel_env
     from uwb_env.localization.bounds import gauge_nees
 
     rounds = []
     current = {}
+    ok_rounds = {"ok": 0, "ambiguous": 0}  # every later round reported ok, and how many of those flagged
     solve, batched = team_state.calibrate_anchors, team_state.later_calibrations
 
     def recording_solve(*args, **kwargs):
         result = solve(*args, **kwargs)
         s = current.get("system")
+        if s is not None and kwargs.get("prior") is not None and result.status == "ok":
+            ok_rounds["ok"] += 1
+            ok_rounds["ambiguous"] += int(result.ambiguous)
         if s is not None and kwargs.get("prior") is not None and result.status == "ok" and not result.ambiguous:
             truth = s.world.to_estimate_frame(s._round_path.midpoint_truth())
             fitted = np.linalg.norm(truth[result.pairs[:, 0]] - truth[result.pairs[:, 1]], axis=1)
@@ -110,7 +116,7 @@ def run_config(dim: int, n: int, motion: str, nlos, episodes: int, steps: int) -
         nees.append(value)
         sq.append(float(np.sum(err**2)) / n)
         gap.append(chi2_gap)
-    return np.array(nees), np.array(sq), np.array(gap)
+    return np.array(nees), np.array(sq), np.array(gap), ok_rounds["ambiguous"] / max(ok_rounds["ok"], 1)
 
 
 def main() -> None:
@@ -123,7 +129,7 @@ def main() -> None:
     started = time.perf_counter()
     figures, rows = {"episodes_per_config": episodes, "steps_per_episode": steps}, []
     for dim, n, motion, nlos in CONFIGS:
-        nees, sq, gap = run_config(dim, n, motion, nlos, episodes, steps)
+        nees, sq, gap, ambiguous = run_config(dim, n, motion, nlos, episodes, steps)
         rank = n * dim - dim * (dim + 1) // 2
         cfg = name_of(dim, n, motion, nlos)
         over = float(nees.mean() / rank) if len(nees) else float("nan")
@@ -133,12 +139,13 @@ def main() -> None:
         gap_over = float(gap.mean() / rank) if len(gap) else float("nan")
         figures.update({f"nees_over_rank_{cfg}": over, f"nees_median_over_rank_{cfg}": median,
                         f"nees_beyond_999_share_{cfg}": beyond, f"rounds_{cfg}": len(nees),
-                        f"shape_rmse_m_{cfg}": rmse, f"truth_chi2_gap_over_rank_{cfg}": gap_over})
-        rows.append([cfg, len(nees), rank, over, median, beyond, gap_over, rmse])
+                        f"shape_rmse_m_{cfg}": rmse, f"truth_chi2_gap_over_rank_{cfg}": gap_over,
+                        f"ambiguous_share_{cfg}": ambiguous})
+        rows.append([cfg, len(nees), ambiguous, rank, over, median, beyond, gap_over, rmse])
     figures["bench_seconds"] = time.perf_counter() - started
     print_table("later calibrations in the env: NEES / rank (1 = honest), share beyond the 99.9 % quantile",
-                ["config", "rounds", "rank", "mean/rank", "median/rank", "beyond 99.9 %", "truth chi2 gap/rank",
-                 "shape RMSE m"], rows)
+                ["config", "rounds", "ambiguous", "rank", "mean/rank", "median/rank", "beyond 99.9 %",
+                 "truth chi2 gap/rank", "shape RMSE m"], rows)
     write_results("bench_consistency_quick" if a.quick else "bench_consistency", figures, a.quick)
 
 

@@ -291,12 +291,16 @@ def calibrate_anchors(
         # shortest-consistent ranges (several neighbour pairs, one-sided weights) start other
         # basins. 30 % NLOS links, N = 8: rounds at >= 10x the bound 5.6 % -> 4.6 %.
         best, ambiguous = problem.add_starts(refs, candidates, _buildup_starts(problem), prior, best, ambiguous)
-    if prior is None and dim == 3 and n > dim + 1:
+    if dim == 3 and n > dim + 1 and (prior is None or n <= LATER_MIRROR_PROBE_MAX_N):
         # Anchors at similar heights: one anchor mirrored across the plane of the others changes
         # its ranges only to second order, and its mirror can fit within the noise, or better
         # (16 anchors, heights of std 0.5 m over 20 m: 3 of 100 rounds were such mirrors
         # reported ok and unambiguous). The local covariance cannot see a second minimum:
         # solve from each anchor's mirror image; a lower cost wins, a tie is ambiguous.
+        # Later calibrations too: a prior from the same kind of round can sit in such a mirror
+        # (8 anchors, heights within +-0.9 m, bench_consistency's 3D geometries: 8 of 180 later
+        # rounds came back ok in a minimum one anchor's mirror beat by up to 0.3 in chi-square,
+        # 15 more within the tie margin). With a prior the starts compete on ranges plus prior.
         best, ambiguous = problem.add_starts(refs, candidates, _plane_mirror_starts(best), prior, best, ambiguous)
     if prior is None and dim == 2 and dim + 1 < n <= FLIP_SEARCH_MAX_N and _thin(best.x):
         # Thin layouts (a strip, a corridor): an anchor mirrored across the shape's long axis,
@@ -854,6 +858,11 @@ FLIP_SEARCH_MAX_N = 16
 # ... and flips of every two anchors across the axis (n (n - 1) / 2 more solves; 6-8 ms in all
 # at N = 8, ~30 ms with a robust loss) up to this many
 FLIP_PAIRS_MAX_N = 8
+# Later 3D calibrations probe single-anchor plane mirrors up to this team size (one solve per
+# anchor whose mirror lies beyond its std: a later calibration of 8 anchors 1.5 -> 3.0 ms, of
+# 16 anchors 11 -> 16 ms; at 64 a later round would pay up to 64 solves of ~15 ms, where the
+# first calibration, run once, still probes every anchor).
+LATER_MIRROR_PROBE_MAX_N = 16
 
 
 def _thin(x: np.ndarray) -> bool:
