@@ -30,7 +30,10 @@ about 1 whatever the likelihood's shape. A gap near 1 with a NEES well above it 
 likelihood is honest and its *linearization* (the covariance) is not: a likelihood far from
 quadratic, e.g. heights of near-coplanar anchors in 3D. A gap well above 1 says the ranges'
 model (variance, outliers, motion during the round) is off. ``ambiguous_share_<cfg>``: of
-the later rounds reported ok, the share flagged ambiguous (left out of the scores above).
+the later rounds reported ok, the share flagged ambiguous (left out of the scores above; the
+env applies them all the same); ``nees_over_rank_all_ok_<cfg>`` and
+``shape_rmse_m_all_ok_<cfg>`` count them in. ``worst_nees_over_rank_<cfg>`` and
+``worst_truth_chi2_gap_<cfg>``: the ok round with the largest NEES, and its chi-square gap.
 
     python benchmarks/bench_consistency.py [--quick]
 
@@ -64,31 +67,27 @@ def name_of(dim: int, n: int, motion: str, nlos) -> str:
     return f"{dim}d_n{n}_{motion}_{'clean' if nlos == 0.0 else 'nlos'}"
 
 
-def run_config(dim: int, n: int, motion: str, nlos, episodes: int, steps: int) -> tuple:
-    """NEES, mean squared anchor error (m^2) and the truth's chi-square minus the fit's, of
-    every ok, unambiguous later round of ``episodes`` episodes; and the share of the later
-    rounds reported ok that were flagged ambiguous (not scored)."""
+def run_config(dim: int, n: int, motion: str, nlos, episodes: int, steps: int) -> dict:
+    """Of every later round of ``episodes`` episodes reported ok: its NEES, mean squared anchor
+    error (m^2), the truth's chi-square minus the fit's, and whether it was flagged ambiguous
+    (arrays under those keys)."""
     import uwb_env.team_state as team_state  # the later rounds' solve (both envs)
     from uwb_env import parallel_env
     from uwb_env.localization.bounds import gauge_nees
 
     rounds = []
     current = {}
-    ok_rounds = {"ok": 0, "ambiguous": 0}  # every later round reported ok, and how many of those flagged
     solve, batched = team_state.calibrate_anchors, team_state.later_calibrations
 
     def recording_solve(*args, **kwargs):
         result = solve(*args, **kwargs)
         s = current.get("system")
         if s is not None and kwargs.get("prior") is not None and result.status == "ok":
-            ok_rounds["ok"] += 1
-            ok_rounds["ambiguous"] += int(result.ambiguous)
-        if s is not None and kwargs.get("prior") is not None and result.status == "ok" and not result.ambiguous:
             truth = s.world.to_estimate_frame(s._round_path.midpoint_truth())
             fitted = np.linalg.norm(truth[result.pairs[:, 0]] - truth[result.pairs[:, 1]], axis=1)
             truth_chi2 = float(np.sum((fitted - result.ranges_m) ** 2 / result.range_var_m2))
             rounds.append((result.positions.copy(), result.covariance.copy(), tuple(result.gauge_refs), truth,
-                           truth_chi2 - result.chi2))
+                           truth_chi2 - result.chi2, bool(result.ambiguous)))
         return result
 
     def hand_back_all(*args, **kwargs):
@@ -110,13 +109,14 @@ def run_config(dim: int, n: int, motion: str, nlos, episodes: int, steps: int) -
             current.clear()
     finally:
         team_state.calibrate_anchors, team_state.later_calibrations = solve, batched
-    nees, sq, gap = [], [], []
-    for x, cov, refs, truth, chi2_gap in rounds:
+    out = {"nees": [], "sq": [], "gap": [], "ambiguous": []}
+    for x, cov, refs, truth, chi2_gap, ambiguous in rounds:
         value, err = gauge_nees(x, cov, refs, truth)
-        nees.append(value)
-        sq.append(float(np.sum(err**2)) / n)
-        gap.append(chi2_gap)
-    return np.array(nees), np.array(sq), np.array(gap), ok_rounds["ambiguous"] / max(ok_rounds["ok"], 1)
+        out["nees"].append(value)
+        out["sq"].append(float(np.sum(err**2)) / n)
+        out["gap"].append(chi2_gap)
+        out["ambiguous"].append(ambiguous)
+    return {k: np.array(v) for k, v in out.items()}
 
 
 def main() -> None:
@@ -129,7 +129,9 @@ def main() -> None:
     started = time.perf_counter()
     figures, rows = {"episodes_per_config": episodes, "steps_per_episode": steps}, []
     for dim, n, motion, nlos in CONFIGS:
-        nees, sq, gap, ambiguous = run_config(dim, n, motion, nlos, episodes, steps)
+        every = run_config(dim, n, motion, nlos, episodes, steps)
+        scored = ~every["ambiguous"]
+        nees, sq, gap = every["nees"][scored], every["sq"][scored], every["gap"][scored]
         rank = n * dim - dim * (dim + 1) // 2
         cfg = name_of(dim, n, motion, nlos)
         over = float(nees.mean() / rank) if len(nees) else float("nan")
@@ -137,14 +139,20 @@ def main() -> None:
         beyond = float(np.mean(nees > chi2.ppf(0.999, rank))) if len(nees) else float("nan")
         rmse = float(np.sqrt(sq.mean())) if len(sq) else float("nan")
         gap_over = float(gap.mean() / rank) if len(gap) else float("nan")
+        ambiguous = float(every["ambiguous"].mean()) if len(every["nees"]) else float("nan")
+        over_all = float(every["nees"].mean() / rank) if len(every["nees"]) else float("nan")
+        worst = int(np.argmax(every["nees"])) if len(every["nees"]) else None
         figures.update({f"nees_over_rank_{cfg}": over, f"nees_median_over_rank_{cfg}": median,
                         f"nees_beyond_999_share_{cfg}": beyond, f"rounds_{cfg}": len(nees),
                         f"shape_rmse_m_{cfg}": rmse, f"truth_chi2_gap_over_rank_{cfg}": gap_over,
-                        f"ambiguous_share_{cfg}": ambiguous})
-        rows.append([cfg, len(nees), ambiguous, rank, over, median, beyond, gap_over, rmse])
+                        f"ambiguous_share_{cfg}": ambiguous, f"nees_over_rank_all_ok_{cfg}": over_all,
+                        f"shape_rmse_m_all_ok_{cfg}": float(np.sqrt(every["sq"].mean())) if len(every["sq"]) else None,
+                        f"worst_nees_over_rank_{cfg}": None if worst is None else float(every["nees"][worst] / rank),
+                        f"worst_truth_chi2_gap_{cfg}": None if worst is None else float(every["gap"][worst])})
+        rows.append([cfg, len(nees), ambiguous, rank, over, over_all, median, beyond, gap_over, rmse])
     figures["bench_seconds"] = time.perf_counter() - started
     print_table("later calibrations in the env: NEES / rank (1 = honest), share beyond the 99.9 % quantile",
-                ["config", "rounds", "ambiguous", "rank", "mean/rank", "median/rank", "beyond 99.9 %",
+                ["config", "rounds", "ambiguous", "rank", "mean/rank", "all ok", "median/rank", "beyond 99.9 %",
                  "truth chi2 gap/rank", "shape RMSE m"], rows)
     write_results("bench_consistency_quick" if a.quick else "bench_consistency", figures, a.quick)
 

@@ -10,13 +10,19 @@ such runs (``--runs``; nothing is simulated for part 1):
 
 1. **Departure gains by what is observed.** Over every recorded decision: the mean gain of each
    departure (summed reward over the rollout's horizon, paired with the rule's on the same
-   futures) and, for each team feature of ``agents/distilled.py``, per quintile of that feature.
-   A deployable policy can gain from a departure only where it can tell the situations apart:
-   a bin of some feature whose mean gain is positive beyond its standard error. The best bin
-   over all features (``best_bin_gain_<move>``, with its ``_se`` and feature) is the figure:
-   with 36 features x 5 bins, a bin about 2.5 SE above zero is what chance alone gives. Beside
-   it, the rollout's own departures: how often it takes them and their measured gain per
-   episode, and the feature means where it departed vs where it followed the rule.
+   futures) and, for each of the 34 team features of ``agents/distilled.py`` that varies in the
+   data (31 on one scenario), per value of a feature with few values (shares of the anchors,
+   the horizon left) or per quintile of the others. A deployable policy can gain from a
+   departure only where it can tell the situations apart: a bin whose mean gain is positive
+   beyond its standard error. Per move, the bin with the highest mean over all features
+   (``best_bin_gain_<move>``, with its ``_se``, feature and size ``_n``) is the figure, with
+   the number of bins whose mean is more than 2 SE above zero (``bins_above_2se_<move>``, of
+   ``bins_per_move``); with about 150 bins, one about 2.5 SE above zero is what chance alone
+   gives. One-dimensional bins
+   only: a gain that needs two features at once to show is not tested (the gain model, part 2,
+   sees all of them). Beside it, the rollout's own departures: how often it takes them and
+   their measured gain per episode, and the feature means where it departed vs where it
+   followed the rule.
 2. **The gain model's fit** (``run.json`` of each run): held-out mean squared error against
    predicting the mean gain (``gain_model_r2_seed_<s>`` = 1 - their ratio), and the margin the
    validation seeds chose (``None``: never depart, the rule itself).
@@ -81,26 +87,34 @@ def load_runs(runs: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray, list
     return np.concatenate(X), np.concatenate(Y), np.concatenate(chosen), records
 
 
-def binned_gains(X: np.ndarray, Y: np.ndarray, n_bins: int = 5) -> list[dict]:
-    """Per team feature and quintile: the decisions' mean gain of each move and its SE."""
+def binned_gains(X: np.ndarray, Y: np.ndarray, n_bins: int = 5, discrete_max: int = 12) -> list[dict]:
+    """Per team feature: the decisions' mean gain of each move and its SE, per value of a
+    feature with at most ``discrete_max`` distinct values (shares, the horizon left), per
+    quintile of the others, over the decisions where the move departs from the rule (bins of
+    fewer than 30 such decisions are left out; constant features are skipped)."""
     from uwb_env.agents.distilled import MOVES, TEAM_FEATURES
 
     rows = []
+    departs = Y != 0.0  # the rollout simulated the move (it was not the rule's own)
     for j, name in enumerate(TEAM_FEATURES):
         x = X[:, j]
-        edges = np.unique(np.quantile(x, np.linspace(0.0, 1.0, n_bins + 1)))
-        if len(edges) < 2:
+        values = np.unique(x)
+        if len(values) < 2:
             continue  # constant over the data (the team size on one scenario)
-        which = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, len(edges) - 2)
-        for b in range(len(edges) - 1):
-            mask = which == b
-            if mask.sum() < 30:
-                continue
+        if len(values) <= discrete_max:
+            bins = [(float(v), float(v), x == v) for v in values]
+        else:
+            edges = np.unique(np.quantile(x, np.linspace(0.0, 1.0, n_bins + 1)))
+            which = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, len(edges) - 2)
+            bins = [(float(edges[b]), float(edges[b + 1]), which == b) for b in range(len(edges) - 1)]
+        for b, (low, high, mask) in enumerate(bins):
             for k, move in enumerate(MOVES):
-                g = Y[mask, k]
-                rows.append({"feature": name, "bin": b, "low": float(edges[b]), "high": float(edges[b + 1]),
-                             "move": move, "n": int(mask.sum()), "mean": float(g.mean()),
-                             "se": float(g.std(ddof=1) / np.sqrt(len(g)))})
+                # a decision where this move was the rule's own has gain 0 by construction: not a departure
+                g = Y[mask & departs[:, k], k]
+                if len(g) < 30:
+                    continue
+                rows.append({"feature": name, "bin": b, "low": low, "high": high, "move": move, "n": len(g),
+                             "mean": float(g.mean()), "se": float(g.std(ddof=1) / np.sqrt(len(g)))})
     return rows
 
 
@@ -267,16 +281,20 @@ def main() -> None:
     rows = []
     for k, move in enumerate(MOVES):
         g = Y[:, k]
-        best = max((r for r in bins if r["move"] == move), key=lambda r: r["mean"] / max(r["se"], 1e-12))
+        best = max((r for r in bins if r["move"] == move), key=lambda r: r["mean"])
         figures.update({f"mean_gain_{move}": float(g.mean()),
                         f"mean_gain_{move}_se": float(g.std(ddof=1) / np.sqrt(len(g))),
                         f"best_bin_gain_{move}": best["mean"], f"best_bin_gain_{move}_se": best["se"],
+                        f"best_bin_gain_{move}_n": best["n"], "binned_features": len({r["feature"] for r in bins}),
+                        f"bins_above_2se_{move}": sum(r["mean"] > 2.0 * r["se"] for r in bins if r["move"] == move),
+                        "bins_per_move": sum(r["move"] == move for r in bins),
                         f"best_bin_{move}_feature": f"{best['feature']} [{best['low']:.3g}, {best['high']:.3g}]",
                         f"rollout_departure_rate_{move}": float((chosen == move).mean())})
-        rows.append([move, g.mean(), (chosen == move).mean(), best["mean"], best["se"],
+        rows.append([move, g.mean(), (chosen == move).mean(), best["mean"], best["se"], best["n"],
                      f"{best['feature']} [{best['low']:.3g}, {best['high']:.3g}]"])
     print_table(f"departure gains over the rule ({len(X):,} decisions; summed reward over the horizon)",
-                ["move", "mean gain", "rollout takes", "best bin gain", "its SE", "best bin"], rows)
+                ["move", "mean gain", "rollout takes", "best bin gain", "its SE", "n", "best bin (highest mean)"],
+                rows)
     rows = []
     for name in SUMMARY_FEATURES:
         j = TEAM_FEATURES.index(name)

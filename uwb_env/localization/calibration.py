@@ -291,17 +291,15 @@ def calibrate_anchors(
         # shortest-consistent ranges (several neighbour pairs, one-sided weights) start other
         # basins. 30 % NLOS links, N = 8: rounds at >= 10x the bound 5.6 % -> 4.6 %.
         best, ambiguous = problem.add_starts(refs, candidates, _buildup_starts(problem), prior, best, ambiguous)
-    if dim == 3 and n > dim + 1 and (prior is None or n <= LATER_MIRROR_PROBE_MAX_N):
+    if prior is None and dim == 3 and n > dim + 1:
         # Anchors at similar heights: one anchor mirrored across the plane of the others changes
         # its ranges only to second order, and its mirror can fit within the noise, or better
         # (16 anchors, heights of std 0.5 m over 20 m: 3 of 100 rounds were such mirrors
         # reported ok and unambiguous). The local covariance cannot see a second minimum:
         # solve from each anchor's mirror image; a lower cost wins, a tie is ambiguous.
-        # Later calibrations too: a prior from the same kind of round can sit in such a mirror
-        # (8 anchors, heights within +-0.9 m, bench_consistency's 3D geometries: 8 of 180 later
-        # rounds came back ok in a minimum one anchor's mirror beat by up to 0.3 in chi-square,
-        # 15 more within the tie margin). With a prior the starts compete on ranges plus prior.
         best, ambiguous = problem.add_starts(refs, candidates, _plane_mirror_starts(best), prior, best, ambiguous)
+    elif prior is not None and dim == 3 and dim + 1 < n <= LATER_MIRROR_PROBE_MAX_N:
+        best, ambiguous = _later_mirror_probes(problem, refs, candidates, best, prior, ambiguous)
     if prior is None and dim == 2 and dim + 1 < n <= FLIP_SEARCH_MAX_N and _thin(best.x):
         # Thin layouts (a strip, a corridor): an anchor mirrored across the shape's long axis,
         # or across the line through its two nearest others, changes its ranges only a little,
@@ -342,6 +340,28 @@ def calibrate_anchors(
         # dim others, mirrored across them): however well this one fits, it may be the mirror
         ambiguous = True
     return _finish(problem, best, refs, prior, gauge, tried, ambiguous)
+
+
+def _later_mirror_probes(problem: _Problem, refs, candidates: list, best, prior, ambiguous: bool):
+    """A later 3D calibration's answer checked against each anchor's plane mirror: a prior from
+    an earlier round of near-coplanar anchors can sit in such a mirror's basin (8 anchors at
+    heights within +-0.6 m, a prior with one anchor mirrored: 2 of 480 later rounds came back
+    ok and unambiguous with a chi-square more than the tie margin above the shape the ranges
+    prefer). Only a mirror the ranges prefer (lower cost, converged: an iteration-capped solve
+    must not win by a hair) competes with the answer, as the starts do (``select``: ranges plus
+    the prior's term); when the prior keeps the answer, it is flagged ambiguous. A mirror the
+    ranges like less never replaces it: the prior comes from the same kind of round and may
+    sit in the wrong basin itself (letting such mirrors compete on the prior's term made the
+    flagged rounds' answers 0.1-0.2 m worse). ``candidates`` gets the probes (the count of
+    starts tried)."""
+    probes = [c for c in problem.solve_starts(refs, _plane_mirror_starts(best)) if c.out.converged]
+    candidates += probes
+    tol = 3.0 * float(np.sqrt(problem.var.max()))
+    preferred = [c for c in probes if _cost(c) < _cost(best) and not _same_shape(c.x, best.x, tol)]
+    if not preferred:
+        return best, ambiguous
+    pick, tie = problem.select([best, min(preferred, key=_cost)], prior)
+    return pick, ambiguous or tie
 
 
 def _cost(candidate) -> float:
@@ -898,8 +918,9 @@ def _flip_starts(x: np.ndarray, pairs_up_to_n: int = 0) -> list[tuple[str, np.nd
 
 def _plane_mirror_starts(best, sigmas: float = 1.0) -> list[tuple[str, np.ndarray]]:
     """``best``'s shape with one anchor k mirrored across the best-fit plane of the others (3D
-    first calibrations), for every k whose mirror image lies more than ``sigmas`` of its own
-    std along the plane's normal away: a nearer image is the same answer within the covariance
+    first calibrations; later ones up to ``LATER_MIRROR_PROBE_MAX_N`` anchors), for every k
+    whose mirror image lies more than ``sigmas`` of its own std along the plane's normal away:
+    a nearer image is the same answer within the covariance
     and its solve (~15 ms at N = 64) would be spent for nothing. At 2 sigma the screen let one
     of the three seeds of ``test_a_3d_anchor_mirrored_across_the_others_plane_...`` through."""
     x = best.x
