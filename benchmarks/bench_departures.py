@@ -203,7 +203,10 @@ class PausedTagsTeamRule(TrueErrorRule):
         return {a: int(x) for a, x in zip(agents, actions, strict=True)}
 
 
-ORACLES = {"true_error": TrueErrorRule, "true_drift": TrueDriftRule, "paused_tags_team": PausedTagsTeamRule}
+# family -> the policy for a grid value and the compared rule's threshold (m)
+ORACLES = {"true_error": lambda value, rule_threshold_m: TrueErrorRule(value),
+           "true_drift": lambda value, rule_threshold_m: TrueDriftRule(value),
+           "paused_tags_team": PausedTagsTeamRule}
 # per family: thresholds (m), or the share of the rule's threshold for paused_tags_team
 ORACLE_GRID = {"true_error": ORACLE_THRESHOLDS_M, "true_drift": ORACLE_THRESHOLDS_M, "paused_tags_team": (0.6, 0.8)}
 
@@ -214,10 +217,8 @@ def _oracle_episode(job) -> dict:
     spec, seed, rule_threshold_m = job
     config = {"max_cycles": 500}
     family, _, value = spec.partition(":")
-    if family == "paused_tags_team":
-        out = run_policy_episode(PausedTagsTeamRule(float(value), rule_threshold_m), seed, config)
-    elif family in ORACLES:
-        out = run_policy_episode(ORACLES[family](float(value)), seed, config)
+    if family in ORACLES:
+        out = run_policy_episode(ORACLES[family](float(value), rule_threshold_m), seed, config)
     else:
         out = run_episode(spec, seed, config)
     return {"spec": spec, "seed": seed, "tag_m": out["mean_tag_error_m"], "return": out["return"],

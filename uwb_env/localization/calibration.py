@@ -920,9 +920,9 @@ def _plane_mirror_starts(best, sigmas: float = 1.0) -> list[tuple[str, np.ndarra
     """``best``'s shape with one anchor k mirrored across the best-fit plane of the others (3D
     first calibrations; later ones up to ``LATER_MIRROR_PROBE_MAX_N`` anchors), for every k
     whose mirror image lies more than ``sigmas`` of its own std along the plane's normal away:
-    a nearer image is the same answer within the covariance
-    and its solve (~15 ms at N = 64) would be spent for nothing. At 2 sigma the screen let one
-    of the three seeds of ``test_a_3d_anchor_mirrored_across_the_others_plane_...`` through."""
+    a nearer image is the same answer within the covariance and its solve (~15 ms at N = 64)
+    would be spent for nothing. At 2 sigma the screen let one of the three seeds of
+    ``test_a_3d_anchor_mirrored_across_the_others_plane_...`` through."""
     x = best.x
     n, dim = x.shape
     try:
