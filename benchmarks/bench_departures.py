@@ -36,10 +36,30 @@ such runs (``--runs``; nothing is simulated for part 1):
    each anchor's error, or when the tags would lose nothing to a round, would help a rule at all
    (``oracle_best_improvement_<family>``: 1 - IQM / the rule's, > 0 where it would).
 
-    python benchmarks/bench_departures.py --runs runs/distilled_v2/seed0 runs/distilled_v2/seed1 \\
-        runs/distilled_v2/seed2 [--oracle] [--quick]
+4. **``--attribution``: what the rollout's headroom is made of.** The rollout over the tuned
+   rule, on the same validation seeds, with futures that forget part of the truth
+   (``ForgetfulRollout``): the tags' motion plans, or the anchors' true positions (drawn from
+   the anchors' own belief instead, as the system predicts it, or rescaled to the size of the
+   true errors: ``belief_scale``, measured first on 10 of the seeds). Where forgetting the anchors' truth takes the gain
+   away, the headroom is information a deployment does not have, not planning it could do
+   (``attribution_improvement_<variant>`` over the rule, ``attribution_over_full_<variant>``
+   over the full rollout, each with its CI).
 
-Writes benchmarks/results/bench_departures.json (``_quick`` with --quick).
+    python benchmarks/bench_departures.py --runs runs/distilled_v2/seed0 runs/distilled_v2/seed1 \\
+        runs/distilled_v2/seed2 [--oracle] [--attribution] [--quick]
+    python benchmarks/bench_departures.py --only-attribution [--quick]   # part 4 alone, ~27 min
+    python benchmarks/bench_departures.py --only-belief [--quick]        # part 5 alone, ~1 min
+
+5. **``--only-belief``: how wide the anchors' belief is**, and what a belief of the right size
+   would give the tags. ``belief_scale``: the true squared constellation error of the anchors
+   over its expectation under their predicted covariances (< 1: the belief is too wide), under
+   the rule on 10 validation seeds. Then the rule with the tag tracker's anchor covariances
+   (calibration and drift) times that scale, paired with the rule as it is on 100 validation
+   seeds (``tracker_rescaled_improvement``, 1 - IQM / as is, with its CI). A diagnostic (the
+   tracker is patched in the worker processes), not a fix.
+
+Writes benchmarks/results/bench_departures.json (``_quick`` with --quick); part 4 alone
+bench_departures_attribution.json, part 5 alone bench_departures_belief.json.
 """
 
 from __future__ import annotations
@@ -211,6 +231,56 @@ ORACLES = {"true_error": lambda value, rule_threshold_m: TrueErrorRule(value),
 ORACLE_GRID = {"true_error": ORACLE_THRESHOLDS_M, "true_drift": ORACLE_THRESHOLDS_M, "paused_tags_team": (0.6, 0.8)}
 
 
+class ForgetfulRollout:
+    """GROUND TRUTH diagnostic: the rollout reference (``rollout:60@<rule>``) whose simulated
+    futures forget part of the truth, to locate where its headroom comes from. Each future's
+    copy of the env is made as the rollout makes it, then, drawn from that future's own
+    generator (the same for every move of one future, the common random numbers kept):
+
+    - ``tags``: the tags' motion plans are redrawn (waypoints; a paused tag's remaining pause
+      uniform in [0, pause_max]); the anchors cannot know where the tags will go;
+    - ``anchors``: each anchor's true position is drawn from the anchors' own belief: its
+      estimate plus a Gaussian error with the covariance the system predicts for it
+      (calibration + drift model, ``LocalizationSystem._predicted_covariance``), mapped to the
+      world frame; the rollout then plans on the state a deployment believes in;
+    - ``anchors_scaled``: as ``anchors`` with that covariance times ``belief_scale`` (the
+      measured ratio of the true errors to the belief's, :func:`belief_scale`): a belief of the
+      right size;
+    - ``full`` forgets nothing (the rollout itself).
+
+    The robots' own motion plans and the tags' true positions stay known in every variant."""
+
+    VARIANTS = ("full", "tags", "anchors", "anchors_scaled")
+
+    def __new__(cls, variant: str, base_spec: str, belief_scale: float = 1.0):
+        from uwb_env.agents.lookahead import RolloutPolicy
+
+        if variant not in cls.VARIANTS:
+            raise ValueError(f"variant={variant!r}: one of {cls.VARIANTS}")
+        scale = float(belief_scale) if variant == "anchors_scaled" else 1.0
+
+        class Forgetful(RolloutPolicy):
+            def _clone(self, env, seed):
+                sim = super()._clone(env, seed)
+                world = sim.system.world
+                rng, motion, n = world.rng, world.motion, world.config.n_anchors
+                if "tags" in variant:
+                    tags = np.arange(len(motion.positions)) >= n
+                    plans = tags & motion.waypoint_mask
+                    if plans.any():
+                        motion.waypoints[plans] = motion._draw_waypoints(plans, rng)
+                    paused = tags & (motion.pause_left_s > 0)
+                    if paused.any():
+                        motion.pause_left_s[paused] = rng.uniform(0.0, motion.pause_max[paused])
+                if "anchors" in variant:
+                    cov = scale * sim.system._predicted_covariance()
+                    error = np.array([rng.multivariate_normal(np.zeros(len(c)), c) for c in cov])
+                    motion.positions[:n] = (world.anchors_est + error) @ world.frame_rotation + world.frame_origin
+                return sim
+
+        return Forgetful(base_spec=base_spec, horizon_steps=60)
+
+
 def _oracle_episode(job) -> dict:
     from uwb_env.training.evaluate import run_episode, run_policy_episode
 
@@ -219,6 +289,10 @@ def _oracle_episode(job) -> dict:
     family, _, value = spec.partition(":")
     if family in ORACLES:
         out = run_policy_episode(ORACLES[family](float(value), rule_threshold_m), seed, config)
+    elif family == "forgetful_rollout":
+        variant, _, scale = value.partition("@")
+        policy = ForgetfulRollout(variant, f"per_anchor_drift:{rule_threshold_m:g}", float(scale or 1.0))
+        out = run_policy_episode(policy, seed, config)
     else:
         out = run_episode(spec, seed, config)
     return {"spec": spec, "seed": seed, "tag_m": out["mean_tag_error_m"], "return": out["return"],
@@ -262,16 +336,174 @@ def oracle(rule: str, n_seeds: int, workers: int) -> tuple[dict, list[list]]:
     return figures, rows
 
 
+def _aligned_error_m2(est: np.ndarray, truth: np.ndarray) -> float:
+    """Summed squared error of the estimates after rigidly aligning the truth onto them (the
+    env's constellation errors: the shape's error, not the frame's)."""
+    from uwb_env.localization.alignment import rigid_align
+
+    rot, trans = rigid_align(truth, est, allow_reflection=False)
+    return float(((est - (truth @ rot.T + trans)) ** 2).sum())
+
+
+def belief_scale(rule: str, n_seeds: int, every_steps: int = 10, draws: int = 20) -> dict:
+    """How wide the anchors' belief is: over ``rule``'s episodes on ``n_seeds`` validation
+    seeds, every ``every_steps`` steps (no round running), the true summed squared
+    constellation error of the anchors against its expectation were the truth drawn from the
+    belief (estimates plus Gaussian errors with the predicted covariances, aligned the same
+    way; ``draws`` draws). Their ratio (< 1: the belief is too wide) scales ``anchors_scaled``."""
+    from uwb_env.agents.registry import make_policy
+
+    from uwb_env.config import EnvConfig
+    from uwb_env.env.parallel_env import UWBCalibrationParallelEnv
+
+    config = EnvConfig.from_dict({"max_cycles": 500, "action_mode": "per_anchor"})
+    rng = np.random.default_rng(0xBE11EF)
+    true_m2, belief_m2 = [], []
+    for i in range(n_seeds):
+        env, policy = UWBCalibrationParallelEnv(config), make_policy(rule, config.sim.dt_s)
+        observations, infos = env.reset(seed=VALIDATION_SEED + i)
+        policy.reset(VALIDATION_SEED + i)
+        system = env.system
+        for t in range(config.max_cycles):
+            observations, _, _, _, infos = env.step(policy.act(observations, infos))
+            if not env.agents:
+                break
+            if t % every_steps or system.world.round is not None:
+                continue
+            est = system.world.anchors_est
+            true_m2.append(_aligned_error_m2(est, system._truth(system.world.anchors_true, "fixed")))
+            cov = system._predicted_covariance()
+            belief_m2.append(np.mean([_aligned_error_m2(est, est + np.array([rng.multivariate_normal(
+                np.zeros(len(c)), c) for c in cov])) for _ in range(draws)]))
+    ratio = float(np.mean(true_m2) / np.mean(belief_m2))
+    return {"belief_scale": ratio, "belief_scale_samples": len(true_m2),
+            "belief_true_error_m2": float(np.mean(true_m2)), "belief_expected_error_m2": float(np.mean(belief_m2))}
+
+
+def _rescaled_tracker_episode(job) -> dict:
+    """One episode of the rule with the tag tracker's anchor covariances (calibration and
+    drift: ``fix_tags_2d``'s pred_var, cal_var, anchor_cov) times ``scale``; nothing else
+    changes (the rule still reads the predicted drift). A worker-process patch: diagnostic only."""
+    from uwb_env.training.evaluate import run_episode
+
+    import uwb_env.system as system_module
+
+    spec, seed, scale = job
+    fix = getattr(system_module, "_unscaled_fix_tags_2d", system_module.fix_tags_2d)
+    system_module._unscaled_fix_tags_2d = fix
+
+    def scaled(anchors, previous, ranges, range_var, pred_var, cal_var, anchor_cov, *rest):
+        return fix(anchors, previous, ranges, range_var, pred_var * scale, cal_var * scale,
+                   None if anchor_cov is None else anchor_cov * scale, *rest)
+
+    system_module.fix_tags_2d = scaled
+    out = run_episode(spec, seed, {"max_cycles": 500})
+    return {"scale": scale, "seed": seed, "tag_m": out["mean_tag_error_m"], "return": out["return"]}
+
+
+def belief(rule: str, n_seeds: int, workers: int) -> tuple[dict, list[list]]:
+    """Part 5: the belief's size (``belief_scale`` on 10 validation seeds), and the rule with the
+    tag tracker weighing the anchors by a belief of that size, paired with the rule as it is
+    on ``n_seeds`` validation seeds."""
+    from uwb_env.evaluation.stats import iqm, paired_relative_improvement
+
+    figures = belief_scale(rule, 10)
+    scale = figures["belief_scale"]
+    jobs = [(rule, VALIDATION_SEED + i, s) for i in range(n_seeds) for s in (1.0, scale)]
+    with ProcessPoolExecutor(workers) as pool:
+        episodes = list(pool.map(_rescaled_tracker_episode, jobs, chunksize=4))
+    tag = {s: np.array([e["tag_m"] for e in sorted((e for e in episodes if e["scale"] == s), key=lambda e: e["seed"])])
+           for s in (1.0, scale)}
+    ret = {s: float(np.mean([e["return"] for e in episodes if e["scale"] == s])) for s in (1.0, scale)}
+    gain = paired_relative_improvement(tag[scale], tag[1.0])
+    figures.update({"belief_rule": rule, "belief_seeds": n_seeds, "tracker_iqm_m_as_is": float(iqm(tag[1.0])),
+                    "tracker_iqm_m_rescaled": float(iqm(tag[scale])), "tracker_rescaled_improvement": gain.value,
+                    "tracker_rescaled_improvement_ci_low": gain.ci_low,
+                    "tracker_rescaled_improvement_ci_high": gain.ci_high,
+                    "tracker_return_as_is": ret[1.0], "tracker_return_rescaled": ret[scale]})
+    rows = [["as is (1.0)", float(iqm(tag[1.0])), "", ret[1.0]],
+            [f"rescaled ({scale:.3f})", float(iqm(tag[scale])),
+             f"{gain.value:+.2%} [{gain.ci_low:+.2%}, {gain.ci_high:+.2%}]", ret[scale]]]
+    return figures, rows
+
+
+def attribution(rule: str, n_seeds: int, workers: int) -> tuple[dict, list[list]]:
+    """The rule and every ``ForgetfulRollout`` variant over it on the same ``n_seeds`` validation
+    seeds: IQM tag error, paired improvement over the rule and over the full rollout (bootstrap
+    CI), return and calibration rate."""
+    from uwb_env.evaluation.stats import iqm, paired_relative_improvement
+
+    family, _, value = rule.partition(":")
+    if family != "per_anchor_drift":
+        raise ValueError(f"--rule={rule!r}: the rollout's base is the drift rule (per_anchor_drift:T)")
+    scale = belief_scale(rule, 10)
+    specs = [rule] + [f"forgetful_rollout:{v}" + (f"@{scale['belief_scale']!r}" if v == "anchors_scaled" else "")
+                      for v in ForgetfulRollout.VARIANTS]
+    jobs = [(s, VALIDATION_SEED + i, float(value)) for i in range(n_seeds) for s in specs]
+    with ProcessPoolExecutor(workers) as pool:
+        episodes = list(pool.map(_oracle_episode, jobs, chunksize=1))
+    by = {s: sorted((e for e in episodes if e["spec"] == s), key=lambda e: e["seed"]) for s in specs}
+    tag = {s: np.array([e["tag_m"] for e in by[s]]) for s in specs}
+    figures, rows = {"attribution_rule": rule, "attribution_seeds": n_seeds, **scale}, []
+    for s in specs:
+        key = "rule" if s == rule else s.partition(":")[2].partition("@")[0]
+        over_rule = paired_relative_improvement(tag[s], tag[rule])
+        over_full = paired_relative_improvement(tag[s], tag[specs[1]])
+        ret = float(np.mean([e["return"] for e in by[s]]))
+        rate = float(np.mean([e["calibrations_per_min"] for e in by[s]]))
+        figures.update({f"attribution_iqm_m_{key}": float(iqm(tag[s])),
+                        f"attribution_improvement_{key}": over_rule.value,
+                        f"attribution_improvement_{key}_ci_low": over_rule.ci_low,
+                        f"attribution_improvement_{key}_ci_high": over_rule.ci_high,
+                        f"attribution_over_full_{key}": over_full.value,
+                        f"attribution_over_full_{key}_ci_low": over_full.ci_low,
+                        f"attribution_over_full_{key}_ci_high": over_full.ci_high,
+                        f"attribution_return_{key}": ret, f"attribution_calibrations_per_min_{key}": rate})
+        rows.append([key, float(iqm(tag[s])), *(f"{g.value:+.1%} [{g.ci_low:+.1%}, {g.ci_high:+.1%}]"
+                                                 for g in (over_rule, over_full)), ret, rate])
+    return figures, rows
+
+
+def _print_attribution(rule: str, rows: list[list]) -> None:
+    print_table(f"the rollout over {rule} forgetting part of the truth (default scenario, validation seeds; "
+                "improvement: 1 - IQM / the other's, paired, 95 % bootstrap CI)",
+                ["rollout forgets", "IQM tag m", "vs the rule", "vs the full rollout", "return", "calibrations/min"],
+                rows)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--runs", nargs="+", default=[str(ROOT / f"runs/distilled_v2/seed{i}") for i in range(3)],
                    help="train_distilled.py output directories (their data/ and run.json)")
     p.add_argument("--oracle", action="store_true", help="also run part 3 (simulates episodes)")
+    p.add_argument("--attribution", action="store_true",
+                   help="also run part 4: the rollout forgetting part of the truth (simulates episodes)")
     p.add_argument("--rule", default="per_anchor_drift:0.3", help="the tuned rule the oracle is compared with")
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--quick", action="store_true")
+    p.add_argument("--only-attribution", action="store_true",
+                   help="run part 4 alone (no training runs needed) -> bench_departures_attribution.json")
+    p.add_argument("--only-belief", action="store_true",
+                   help="run part 5 alone (the belief's size; the tracker on a belief of that size) "
+                        "-> bench_departures_belief.json")
     a = p.parse_args()
     started = time.perf_counter()
+    if a.only_belief:
+        figures, rows = belief(a.rule, 10 if a.quick else 100, a.workers)
+        print(f"belief scale (true / believed squared constellation error): {figures['belief_scale']:.3f} over "
+              f"{figures['belief_scale_samples']} samples")
+        print_table(f"{a.rule} with the tag tracker's anchor covariances rescaled (default scenario, validation "
+                    "seeds; improvement: 1 - IQM / as is, paired, 95 % bootstrap CI)",
+                    ["tracker belief", "IQM tag m", "improvement", "return"], rows)
+        figures["bench_seconds"] = time.perf_counter() - started
+        write_results("bench_departures_belief" + ("_quick" if a.quick else ""), figures, a.quick)
+        return
+    if a.only_attribution:
+        figures, rows = attribution(a.rule, 10 if a.quick else 100, a.workers)
+        _print_attribution(a.rule, rows)
+        figures["bench_seconds"] = time.perf_counter() - started
+        write_results("bench_departures_attribution" + ("_quick" if a.quick else ""), figures, a.quick)
+        return
     from uwb_env.agents.distilled import MOVES, TEAM_FEATURES
 
     X, Y, chosen, records = load_runs(a.runs)
@@ -318,6 +550,10 @@ def main() -> None:
         print_table(f"rules on ground truth vs {a.rule} (default scenario, validation seeds; improvement: "
                     "1 - IQM / the rule's, paired, 95 % bootstrap CI)",
                     ["rule", "IQM tag m", "improvement", "return", "calibrations/min"], rows)
+    if a.attribution:
+        more, rows = attribution(a.rule, 10 if a.quick else 100, a.workers)
+        figures.update(more)
+        _print_attribution(a.rule, rows)
     figures["bench_seconds"] = time.perf_counter() - started
     write_results("bench_departures_quick" if a.quick else "bench_departures", figures, a.quick)
 

@@ -211,3 +211,54 @@ def test_rollout_improves_on_a_base_that_never_calibrates():
     assert decisions[150]["team"] == 0 and returns["rollout", 150] == returns["never", 150]
     assert decisions[500]["team"] >= 2
     assert returns["rollout", 500] > 1.1 * returns["never", 500]  # rewards are negative: 10 % better
+
+
+def _bench_departures():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_departures.py"
+    spec = importlib.util.spec_from_file_location("bench_departures", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_forgetful_rollout_forgets_only_what_it_says_and_never_touches_the_real_env():
+    """bench_departures' attribution: each variant's simulated copy differs from the truth only
+    in what it forgets; the real env is left as it was."""
+    from uwb_env.config import EnvConfig
+
+    bench = _bench_departures()
+    env = UWBCalibrationParallelEnv(EnvConfig.from_dict({"max_cycles": 500, "action_mode": "per_anchor"}))
+    env.reset(seed=3)
+    for _ in range(60):  # let the anchors drift away from their estimates
+        env.step({a: 0 for a in env.agents})
+    motion = env.system.world.motion
+    n = env.system.n_anchors
+    before = (motion.positions.copy(), motion.waypoints.copy(), motion.pause_left_s.copy())
+    clones = {}
+    for variant in ("full", "tags", "anchors", "anchors_scaled"):
+        policy = bench.ForgetfulRollout(variant, "per_anchor_drift:0.3", belief_scale=0.25)
+        policy.bind(env)
+        clones[variant] = policy._clone(env, 7).system.world.motion
+    for real, now in zip(before, (motion.positions, motion.waypoints, motion.pause_left_s), strict=True):
+        np.testing.assert_array_equal(real, now)
+    np.testing.assert_array_equal(clones["full"].positions, motion.positions)
+    np.testing.assert_array_equal(clones["full"].waypoints, motion.waypoints)
+    tags = clones["tags"]
+    np.testing.assert_array_equal(tags.positions, motion.positions)
+    np.testing.assert_array_equal(tags.waypoints[:n], motion.waypoints[:n])
+    assert not np.array_equal(tags.waypoints[n:], motion.waypoints[n:])
+    # anchors: drawn around the estimates with the predicted spread (scaled: a quarter of the variance)
+    est = env.system.world.anchors_est
+    spread = np.sqrt(np.trace(env.system._predicted_covariance(), axis1=1, axis2=2))
+    for variant, scale in (("anchors", 1.0), ("anchors_scaled", 0.25)):
+        drawn = clones[variant]
+        np.testing.assert_array_equal(drawn.positions[n:], motion.positions[n:])
+        np.testing.assert_array_equal(drawn.waypoints, motion.waypoints)
+        offset = np.linalg.norm(env.system.world.to_estimate_frame(drawn.positions[:n]) - est, axis=1)
+        assert np.all(offset < 5.0 * np.sqrt(scale) * spread)
+        assert not np.allclose(drawn.positions[:n], motion.positions[:n])
+    with pytest.raises(ValueError, match="variant"):
+        bench.ForgetfulRollout("everything", "per_anchor_drift:0.3")
