@@ -47,15 +47,18 @@ such runs (``--runs``; nothing is simulated for part 1):
 
     python benchmarks/bench_departures.py --runs runs/distilled_v2/seed0 runs/distilled_v2/seed1 \\
         runs/distilled_v2/seed2 [--oracle] [--attribution] [--quick]
-    python benchmarks/bench_departures.py --only-attribution [--quick]   # part 4 alone, ~27 min
+    python benchmarks/bench_departures.py --only-attribution [--quick]   # part 4 alone, ~26 min
     python benchmarks/bench_departures.py --only-belief [--quick]        # part 5 alone, ~1 min
 
 5. **``--only-belief``: how wide the anchors' belief is**, and what a belief of the right size
    would give the tags. ``belief_scale``: the true squared constellation error of the anchors
    over its expectation under their predicted covariances (< 1: the belief is too wide), under
    the rule on 10 validation seeds. Then the rule with the tag tracker's anchor covariances
-   (calibration and drift) times that scale, paired with the rule as it is on 100 validation
-   seeds (``tracker_rescaled_improvement``, 1 - IQM / as is, with its CI). A diagnostic (the
+   (calibration and drift) times that scale (``tracker_rescaled_improvement``, 1 - IQM / as
+   is, with its CI), and with the tracker not weighing the anchors by their covariances at all
+   (``tracker_no_cov_improvement``), each paired with the rule as it is on 100 validation
+   seeds; and the latter on every suite scenario with its tuned base rule
+   (``tracker_no_cov_improvement_<scenario>``, 100 of its validation seeds). A diagnostic (the
    tracker is patched in the worker processes), not a fix.
 
 Writes benchmarks/results/bench_departures.json (``_quick`` with --quick); part 4 alone
@@ -241,18 +244,22 @@ class ForgetfulRollout:
       uniform in [0, pause_max]); the anchors cannot know where the tags will go;
     - ``anchors``: each anchor's true position is drawn from the anchors' own belief: its
       estimate plus a Gaussian error with the covariance the system predicts for it
-      (calibration + drift model, ``LocalizationSystem._predicted_covariance``), mapped to the
-      world frame; the rollout then plans on the state a deployment believes in;
-    - ``anchors_scaled``: as ``anchors`` with that covariance times ``belief_scale`` (the
-      measured ratio of the true errors to the belief's, :func:`belief_scale`): a belief of the
-      right size;
+      (calibration + drift model, ``LocalizationSystem._predicted_covariance``), drawn
+      independently per anchor (the per-anchor blocks, in the calibration's gauge; the
+      correlations between anchors are not kept), mapped to the world frame;
+    - ``anchors_scaled``: as ``anchors`` with those covariances times ``belief_scale`` (the
+      measured ratio of the true squared error to the one these draws expect,
+      :func:`belief_scale`): the same belief, rescaled to the true errors' size;
     - ``full`` forgets nothing (the rollout itself).
 
-    The robots' own motion plans and the tags' true positions stay known in every variant."""
+    Known in every variant: the robots' own motion plans, the tags' true positions, and the
+    odometry's true error state (each robot's scale error, accumulated heading error, slips),
+    which drives the future drift. So ``anchors`` forgets the anchors' current errors but not
+    their cause: a leak that can only help it."""
 
     VARIANTS = ("full", "tags", "anchors", "anchors_scaled")
 
-    def __new__(cls, variant: str, base_spec: str, belief_scale: float = 1.0):
+    def __new__(cls, variant: str, base_spec: str, belief_scale: float = 1.0, dt_s: float = 0.2):
         from uwb_env.agents.lookahead import RolloutPolicy
 
         if variant not in cls.VARIANTS:
@@ -278,7 +285,7 @@ class ForgetfulRollout:
                     motion.positions[:n] = (world.anchors_est + error) @ world.frame_rotation + world.frame_origin
                 return sim
 
-        return Forgetful(base_spec=base_spec, horizon_steps=60)
+        return Forgetful(base_spec=base_spec, horizon_steps=60, dt_s=dt_s)
 
 
 def _oracle_episode(job) -> dict:
@@ -290,8 +297,11 @@ def _oracle_episode(job) -> dict:
     if family in ORACLES:
         out = run_policy_episode(ORACLES[family](float(value), rule_threshold_m), seed, config)
     elif family == "forgetful_rollout":
+        from uwb_env.config import EnvConfig
+
         variant, _, scale = value.partition("@")
-        policy = ForgetfulRollout(variant, f"per_anchor_drift:{rule_threshold_m:g}", float(scale or 1.0))
+        policy = ForgetfulRollout(variant, f"per_anchor_drift:{rule_threshold_m:g}", float(scale or 1.0),
+                                  EnvConfig.from_dict(config).sim.dt_s)
         out = run_policy_episode(policy, seed, config)
     else:
         out = run_episode(spec, seed, config)
@@ -349,8 +359,13 @@ def belief_scale(rule: str, n_seeds: int, every_steps: int = 10, draws: int = 20
     """How wide the anchors' belief is: over ``rule``'s episodes on ``n_seeds`` validation
     seeds, every ``every_steps`` steps (no round running), the true summed squared
     constellation error of the anchors against its expectation were the truth drawn from the
-    belief (estimates plus Gaussian errors with the predicted covariances, aligned the same
-    way; ``draws`` draws). Their ratio (< 1: the belief is too wide) scales ``anchors_scaled``."""
+    belief (estimates plus Gaussian errors drawn independently per anchor from its block of the
+    predicted covariance, as ``ForgetfulRollout`` draws them, aligned the same way; ``draws``
+    draws). Their ratio (< 1: too wide) scales ``anchors_scaled``. It scores the per-anchor
+    blocks used on their own (as the rollout's draws and the tag tracker use them), in the
+    calibration's gauge and with ``_predicted_covariance``'s floor of one range std per axis;
+    not the joint covariance, which the drawn-independently blocks can overstate (anchor 0's
+    calibration block is zero in that gauge, the far anchors' carry the frame's uncertainty)."""
     from uwb_env.agents.registry import make_policy
 
     from uwb_env.config import EnvConfig
@@ -381,14 +396,16 @@ def belief_scale(rule: str, n_seeds: int, every_steps: int = 10, draws: int = 20
 
 
 def _rescaled_tracker_episode(job) -> dict:
-    """One episode of the rule with the tag tracker's anchor covariances (calibration and
-    drift: ``fix_tags_2d``'s pred_var, cal_var, anchor_cov) times ``scale``; nothing else
-    changes (the rule still reads the predicted drift). A worker-process patch: diagnostic only."""
+    """One episode of the rule with the 2D tag tracker's anchor covariances (calibration and
+    drift: ``fix_tags_2d``'s pred_var, cal_var, anchor_cov) times ``scale``: the anchors'
+    weights, and with them the stuck-tag restart threshold and the mirror and fit tests'
+    variances, which read the same pred_var. The rule still reads the predicted drift. A
+    worker-process patch: diagnostic only. ``overrides``: env config keys for this episode."""
     from uwb_env.training.evaluate import run_episode
 
     import uwb_env.system as system_module
 
-    spec, seed, scale = job
+    spec, seed, scale, overrides, max_cycles = job
     fix = getattr(system_module, "_unscaled_fix_tags_2d", system_module.fix_tags_2d)
     system_module._unscaled_fix_tags_2d = fix
 
@@ -397,33 +414,79 @@ def _rescaled_tracker_episode(job) -> dict:
                    None if anchor_cov is None else anchor_cov * scale, *rest)
 
     system_module.fix_tags_2d = scaled
-    out = run_episode(spec, seed, {"max_cycles": 500})
-    return {"scale": scale, "seed": seed, "tag_m": out["mean_tag_error_m"], "return": out["return"]}
+    out = run_episode(spec, seed, {"max_cycles": max_cycles, **overrides})
+    arm = "no_cov" if overrides.get("solver", {}).get("use_anchor_covariance") is False else scale
+    return {"arm": arm, "seed": seed, "tag_m": out["mean_tag_error_m"], "return": out["return"]}
 
 
 def belief(rule: str, n_seeds: int, workers: int) -> tuple[dict, list[list]]:
     """Part 5: the belief's size (``belief_scale`` on 10 validation seeds), and the rule with the
-    tag tracker weighing the anchors by a belief of that size, paired with the rule as it is
-    on ``n_seeds`` validation seeds."""
+    tag tracker weighing the anchors by a belief of that size, or not by their covariances at
+    all (``solver.use_anchor_covariance=False``: every range weighs 1 / its variance), each
+    paired with the rule as it is on ``n_seeds`` validation seeds."""
     from uwb_env.evaluation.stats import iqm, paired_relative_improvement
 
     figures = belief_scale(rule, 10)
     scale = figures["belief_scale"]
-    jobs = [(rule, VALIDATION_SEED + i, s) for i in range(n_seeds) for s in (1.0, scale)]
+    arms = {1.0: {}, scale: {}, "no_cov": {"solver": {"use_anchor_covariance": False}}}
+    jobs = [(rule, VALIDATION_SEED + i, 1.0 if a == "no_cov" else a, o, 500) for i in range(n_seeds)
+            for a, o in arms.items()]
     with ProcessPoolExecutor(workers) as pool:
         episodes = list(pool.map(_rescaled_tracker_episode, jobs, chunksize=4))
-    tag = {s: np.array([e["tag_m"] for e in sorted((e for e in episodes if e["scale"] == s), key=lambda e: e["seed"])])
-           for s in (1.0, scale)}
-    ret = {s: float(np.mean([e["return"] for e in episodes if e["scale"] == s])) for s in (1.0, scale)}
-    gain = paired_relative_improvement(tag[scale], tag[1.0])
+    tag = {a: np.array([e["tag_m"] for e in sorted((e for e in episodes if e["arm"] == a), key=lambda e: e["seed"])])
+           for a in arms}
+    ret = {a: float(np.mean([e["return"] for e in episodes if e["arm"] == a])) for a in arms}
     figures.update({"belief_rule": rule, "belief_seeds": n_seeds, "tracker_iqm_m_as_is": float(iqm(tag[1.0])),
-                    "tracker_iqm_m_rescaled": float(iqm(tag[scale])), "tracker_rescaled_improvement": gain.value,
-                    "tracker_rescaled_improvement_ci_low": gain.ci_low,
-                    "tracker_rescaled_improvement_ci_high": gain.ci_high,
-                    "tracker_return_as_is": ret[1.0], "tracker_return_rescaled": ret[scale]})
-    rows = [["as is (1.0)", float(iqm(tag[1.0])), "", ret[1.0]],
-            [f"rescaled ({scale:.3f})", float(iqm(tag[scale])),
-             f"{gain.value:+.2%} [{gain.ci_low:+.2%}, {gain.ci_high:+.2%}]", ret[scale]]]
+                    "tracker_return_as_is": ret[1.0]})
+    rows = [["as is", float(iqm(tag[1.0])), "", ret[1.0]]]
+    for arm, key, label in ((scale, "rescaled", f"covariances x {scale:.3f}"),
+                            ("no_cov", "no_cov", "no anchor covariances (use_anchor_covariance=False)")):
+        gain = paired_relative_improvement(tag[arm], tag[1.0])
+        figures.update({f"tracker_iqm_m_{key}": float(iqm(tag[arm])), f"tracker_{key}_improvement": gain.value,
+                        f"tracker_{key}_improvement_ci_low": gain.ci_low,
+                        f"tracker_{key}_improvement_ci_high": gain.ci_high, f"tracker_return_{key}": ret[arm]})
+        rows.append([label, float(iqm(tag[arm])), f"{gain.value:+.2%} [{gain.ci_low:+.2%}, {gain.ci_high:+.2%}]",
+                     ret[arm]])
+    return figures, rows
+
+
+def no_covariance_suite(n_seeds: int, workers: int) -> tuple[dict, list[list]]:
+    """Part 5, every suite scenario: its tuned base rule (``training/tuned/suite_learned_base.json``)
+    with the tag tracker as it is vs without anchor covariances, paired on the first ``n_seeds``
+    of the scenario's validation seeds (IQM tag error; 1 - IQM / as is, with its CI)."""
+    from uwb_env.agents.distilled import base_spec
+    from uwb_env.training.suite import load_suite
+
+    from uwb_env.evaluation.stats import iqm, paired_relative_improvement
+
+    suite = load_suite()
+    bases = json.loads((ROOT / "training/tuned/suite_learned_base.json").read_text())["base"]
+    jobs = []
+    for name, entry in suite.items():
+        first = entry["seeds"]["validation"][0]
+        for i in range(n_seeds):
+            for cov in (True, False):
+                config = dict(entry["config"])
+                config["solver"] = {**config.get("solver", {}), "use_anchor_covariance": cov}
+                jobs.append((name, (base_spec(bases[name]), first + i, 1.0, config, entry["max_cycles"])))
+    with ProcessPoolExecutor(workers) as pool:
+        episodes = list(pool.map(_rescaled_tracker_episode, [j for _, j in jobs], chunksize=8))
+    figures, rows, gains = {}, [], []
+    for name in suite:
+        runs = [(e, j[1]) for (n, j), e in zip(jobs, episodes, strict=True) if n == name]
+        as_is = np.array([e["tag_m"] for e, _ in sorted(runs, key=lambda r: r[1]) if e["arm"] != "no_cov"])
+        no_cov = np.array([e["tag_m"] for e, _ in sorted(runs, key=lambda r: r[1]) if e["arm"] == "no_cov"])
+        gain = paired_relative_improvement(no_cov, as_is)
+        gains.append(gain)
+        figures.update({f"tracker_no_cov_improvement_{name}": gain.value,
+                        f"tracker_no_cov_improvement_{name}_ci_low": gain.ci_low,
+                        f"tracker_no_cov_improvement_{name}_ci_high": gain.ci_high})
+        rows.append([name, base_spec(bases[name]), float(iqm(as_is)), float(iqm(no_cov)),
+                     f"{gain.value:+.2%} [{gain.ci_low:+.2%}, {gain.ci_high:+.2%}]"])
+    figures.update({"tracker_no_cov_suite_seeds": n_seeds,
+                    "tracker_no_cov_scenarios_better": sum(g.ci_low > 0 for g in gains),
+                    "tracker_no_cov_scenarios_worse": sum(g.ci_high < 0 for g in gains),
+                    "tracker_no_cov_scenarios": len(gains)})
     return figures, rows
 
 
@@ -492,9 +555,14 @@ def main() -> None:
         figures, rows = belief(a.rule, 10 if a.quick else 100, a.workers)
         print(f"belief scale (true / believed squared constellation error): {figures['belief_scale']:.3f} over "
               f"{figures['belief_scale_samples']} samples")
-        print_table(f"{a.rule} with the tag tracker's anchor covariances rescaled (default scenario, validation "
+        print_table(f"{a.rule} with the tag tracker weighing the anchors otherwise (default scenario, validation "
                     "seeds; improvement: 1 - IQM / as is, paired, 95 % bootstrap CI)",
                     ["tracker belief", "IQM tag m", "improvement", "return"], rows)
+        more, rows = no_covariance_suite(10 if a.quick else 100, a.workers)
+        figures.update(more)
+        print_table("every suite scenario, its tuned base rule: the tag tracker without anchor covariances vs as is "
+                    "(validation seeds; improvement: 1 - IQM / as is, paired, 95 % bootstrap CI)",
+                    ["scenario", "rule", "IQM as is", "IQM no covariances", "improvement"], rows)
         figures["bench_seconds"] = time.perf_counter() - started
         write_results("bench_departures_belief" + ("_quick" if a.quick else ""), figures, a.quick)
         return
