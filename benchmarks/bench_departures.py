@@ -57,9 +57,11 @@ such runs (``--runs``; nothing is simulated for part 1):
    (calibration and drift) times that scale (``tracker_rescaled_improvement``, 1 - IQM / as
    is, with its CI), and with the tracker not weighing the anchors by their covariances at all
    (``tracker_no_cov_improvement``), each paired with the rule as it is on 100 validation
-   seeds; and the latter on every suite scenario with its tuned base rule
-   (``tracker_no_cov_improvement_<scenario>``, 100 of its validation seeds). A diagnostic (the
-   tracker is patched in the worker processes), not a fix.
+   seeds; and with each calibration's per-anchor blocks taken from its joint covariance
+   projected to the constellation's gauge (``tracker_projected_improvement``). The last two
+   also on every suite scenario with its tuned base rule
+   (``tracker_<no_cov|projected>_improvement_<scenario>``, 100 of its validation seeds). A
+   diagnostic (the tracker is patched in the worker processes), not a fix.
 
 Writes benchmarks/results/bench_departures.json (``_quick`` with --quick); part 4 alone
 bench_departures_attribution.json, part 5 alone bench_departures_belief.json.
@@ -395,53 +397,107 @@ def belief_scale(rule: str, n_seeds: int, every_steps: int = 10, draws: int = 20
             "belief_true_error_m2": float(np.mean(true_m2)), "belief_expected_error_m2": float(np.mean(belief_m2))}
 
 
-def _rescaled_tracker_episode(job) -> dict:
-    """One episode of the rule with the 2D tag tracker's anchor covariances (calibration and
-    drift: ``fix_tags_2d``'s pred_var, cal_var, anchor_cov) times ``scale``: the anchors'
-    weights, and with them the stuck-tag restart threshold and the mirror and fit tests'
-    variances, which read the same pred_var. The rule still reads the predicted drift. A
-    worker-process patch: diagnostic only. ``overrides``: env config keys for this episode."""
+def _project_to_constellation(cov: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """(2n, 2n) covariance of n planar positions -> its part orthogonal to the rigid motions
+    at ``positions`` (two translations, a rotation about the centroid): the inner-constraint
+    gauge, the errors relative to the constellation."""
+    n = len(positions)
+    c = positions - positions.mean(0)
+    h = np.zeros((2 * n, 3))
+    h[0::2, 0] = h[1::2, 1] = 1.0
+    h[0::2, 2], h[1::2, 2] = -c[:, 1], c[:, 0]
+    p = np.eye(2 * n) - h @ np.linalg.solve(h.T @ h, h.T)
+    return p @ cov @ p.T
+
+
+def _tracker_episode(job) -> dict:
+    """One episode of ``spec`` with the 2D tag tracker weighing the anchors per ``arm``:
+
+    - ``as_is``;
+    - ``rescaled:<s>``: its anchor covariances (calibration and drift: ``fix_tags_2d``'s
+      pred_var, cal_var, anchor_cov) times s: the weights, and with them the stuck-tag restart
+      threshold and the mirror and fit tests' variances, which read the same pred_var;
+    - ``projected``: each calibration's per-anchor blocks taken from its joint covariance
+      projected to the constellation's gauge (``_project_to_constellation``) instead of the
+      solver's gauge (``RoundSolutions.put_solved`` / ``put_result``);
+    - ``no_cov``: ``solver.use_anchor_covariance=False`` (every range weighs 1 / its variance).
+
+    The rule still reads the predicted drift. Worker-process patches, set again for every
+    episode from the originals: diagnostic only. ``overrides``: env config keys."""
     from uwb_env.training.evaluate import run_episode
 
     import uwb_env.system as system_module
+    import uwb_env.team_state as team_state
 
-    spec, seed, scale, overrides, max_cycles = job
-    fix = getattr(system_module, "_unscaled_fix_tags_2d", system_module.fix_tags_2d)
-    system_module._unscaled_fix_tags_2d = fix
+    spec, seed, arm, overrides, max_cycles = job
+    if not hasattr(team_state, "_bench_originals"):
+        team_state._bench_originals = (system_module.fix_tags_2d, team_state.RoundSolutions.put_solved,
+                                       team_state.RoundSolutions.put_result)
+    fix, put_solved, put_result = team_state._bench_originals
+    system_module.fix_tags_2d = fix
+    team_state.RoundSolutions.put_solved, team_state.RoundSolutions.put_result = put_solved, put_result
+    config = {"max_cycles": max_cycles, **overrides}
+    if arm.startswith("rescaled:"):
+        scale = float(arm.partition(":")[2])
 
-    def scaled(anchors, previous, ranges, range_var, pred_var, cal_var, anchor_cov, *rest):
-        return fix(anchors, previous, ranges, range_var, pred_var * scale, cal_var * scale,
-                   None if anchor_cov is None else anchor_cov * scale, *rest)
+        def scaled(anchors, previous, ranges, range_var, pred_var, cal_var, anchor_cov, *rest):
+            return fix(anchors, previous, ranges, range_var, pred_var * scale, cal_var * scale,
+                       None if anchor_cov is None else anchor_cov * scale, *rest)
 
-    system_module.fix_tags_2d = scaled
-    out = run_episode(spec, seed, {"max_cycles": max_cycles, **overrides})
-    arm = "no_cov" if overrides.get("solver", {}).get("use_anchor_covariance") is False else scale
+        system_module.fix_tags_2d = scaled
+    elif arm == "projected":
+        def blocks(cov, positions):
+            n, dim = positions.shape
+            return _project_to_constellation(cov, positions).reshape(n, dim, n, dim)[np.arange(n), :, np.arange(n), :]
+
+        def projected_solved(self, rows, solved):
+            put_solved(self, rows, solved)
+            for k, row in enumerate(rows):
+                self.anchor_cov[row] = blocks(solved.covariance[k], solved.positions[k])
+
+        def projected_result(self, row, result):
+            put_result(self, row, result)
+            if result.status != "degenerate" and result.positions.shape[1] == 2:
+                self.anchor_cov[row] = blocks(result.covariance, result.positions)
+
+        team_state.RoundSolutions.put_solved = projected_solved
+        team_state.RoundSolutions.put_result = projected_result
+    elif arm == "no_cov":
+        config["solver"] = {**config.get("solver", {}), "use_anchor_covariance": False}
+    elif arm != "as_is":
+        raise ValueError(f"arm={arm!r}: as_is, rescaled:<s>, projected or no_cov")
+    out = run_episode(spec, seed, config)
     return {"arm": arm, "seed": seed, "tag_m": out["mean_tag_error_m"], "return": out["return"]}
+
+
+def _paired_arms(episodes: list[dict], arms) -> dict:
+    """Per arm, the tag errors in seed order."""
+    return {a: np.array([e["tag_m"] for e in sorted((e for e in episodes if e["arm"] == a), key=lambda e: e["seed"])])
+            for a in arms}
 
 
 def belief(rule: str, n_seeds: int, workers: int) -> tuple[dict, list[list]]:
     """Part 5: the belief's size (``belief_scale`` on 10 validation seeds), and the rule with the
-    tag tracker weighing the anchors by a belief of that size, or not by their covariances at
-    all (``solver.use_anchor_covariance=False``: every range weighs 1 / its variance), each
-    paired with the rule as it is on ``n_seeds`` validation seeds."""
+    tag tracker weighing the anchors by covariances of that size, by the calibrations' blocks
+    in the constellation's gauge, or not by their covariances at all (``_tracker_episode``),
+    each paired with the rule as it is on ``n_seeds`` validation seeds."""
     from uwb_env.evaluation.stats import iqm, paired_relative_improvement
 
     figures = belief_scale(rule, 10)
     scale = figures["belief_scale"]
-    arms = {1.0: {}, scale: {}, "no_cov": {"solver": {"use_anchor_covariance": False}}}
-    jobs = [(rule, VALIDATION_SEED + i, 1.0 if a == "no_cov" else a, o, 500) for i in range(n_seeds)
-            for a, o in arms.items()]
+    arms = ("as_is", f"rescaled:{scale!r}", "projected", "no_cov")
+    jobs = [(rule, VALIDATION_SEED + i, a, {}, 500) for i in range(n_seeds) for a in arms]
     with ProcessPoolExecutor(workers) as pool:
-        episodes = list(pool.map(_rescaled_tracker_episode, jobs, chunksize=4))
-    tag = {a: np.array([e["tag_m"] for e in sorted((e for e in episodes if e["arm"] == a), key=lambda e: e["seed"])])
-           for a in arms}
+        episodes = list(pool.map(_tracker_episode, jobs, chunksize=4))
+    tag = _paired_arms(episodes, arms)
     ret = {a: float(np.mean([e["return"] for e in episodes if e["arm"] == a])) for a in arms}
-    figures.update({"belief_rule": rule, "belief_seeds": n_seeds, "tracker_iqm_m_as_is": float(iqm(tag[1.0])),
-                    "tracker_return_as_is": ret[1.0]})
-    rows = [["as is", float(iqm(tag[1.0])), "", ret[1.0]]]
-    for arm, key, label in ((scale, "rescaled", f"covariances x {scale:.3f}"),
+    figures.update({"belief_rule": rule, "belief_seeds": n_seeds, "tracker_iqm_m_as_is": float(iqm(tag["as_is"])),
+                    "tracker_return_as_is": ret["as_is"]})
+    rows = [["as is", float(iqm(tag["as_is"])), "", ret["as_is"]]]
+    for arm, key, label in ((arms[1], "rescaled", f"covariances x {scale:.3f}"),
+                            ("projected", "projected", "calibration blocks in the constellation's gauge"),
                             ("no_cov", "no_cov", "no anchor covariances (use_anchor_covariance=False)")):
-        gain = paired_relative_improvement(tag[arm], tag[1.0])
+        gain = paired_relative_improvement(tag[arm], tag["as_is"])
         figures.update({f"tracker_iqm_m_{key}": float(iqm(tag[arm])), f"tracker_{key}_improvement": gain.value,
                         f"tracker_{key}_improvement_ci_low": gain.ci_low,
                         f"tracker_{key}_improvement_ci_high": gain.ci_high, f"tracker_return_{key}": ret[arm]})
@@ -452,8 +508,9 @@ def belief(rule: str, n_seeds: int, workers: int) -> tuple[dict, list[list]]:
 
 def no_covariance_suite(n_seeds: int, workers: int) -> tuple[dict, list[list]]:
     """Part 5, every suite scenario: its tuned base rule (``training/tuned/suite_learned_base.json``)
-    with the tag tracker as it is vs without anchor covariances, paired on the first ``n_seeds``
-    of the scenario's validation seeds (IQM tag error; 1 - IQM / as is, with its CI)."""
+    with the tag tracker as it is, without anchor covariances, and with the calibrations' blocks
+    in the constellation's gauge, paired on the first ``n_seeds`` of the scenario's validation
+    seeds (IQM tag error; 1 - IQM / as is, with its CI)."""
     from uwb_env.agents.distilled import base_spec
     from uwb_env.training.suite import load_suite
 
@@ -461,32 +518,28 @@ def no_covariance_suite(n_seeds: int, workers: int) -> tuple[dict, list[list]]:
 
     suite = load_suite()
     bases = json.loads((ROOT / "training/tuned/suite_learned_base.json").read_text())["base"]
-    jobs = []
-    for name, entry in suite.items():
-        first = entry["seeds"]["validation"][0]
-        for i in range(n_seeds):
-            for cov in (True, False):
-                config = dict(entry["config"])
-                config["solver"] = {**config.get("solver", {}), "use_anchor_covariance": cov}
-                jobs.append((name, (base_spec(bases[name]), first + i, 1.0, config, entry["max_cycles"])))
+    arms = ("as_is", "no_cov", "projected")
+    jobs = [(name, (base_spec(bases[name]), entry["seeds"]["validation"][0] + i, a, entry["config"],
+                    entry["max_cycles"])) for name, entry in suite.items() for i in range(n_seeds) for a in arms]
     with ProcessPoolExecutor(workers) as pool:
-        episodes = list(pool.map(_rescaled_tracker_episode, [j for _, j in jobs], chunksize=8))
-    figures, rows, gains = {}, [], []
+        episodes = list(pool.map(_tracker_episode, [j for _, j in jobs], chunksize=8))
+    figures, rows, better, worse = {}, [], dict.fromkeys(arms[1:], 0), dict.fromkeys(arms[1:], 0)
     for name in suite:
-        runs = [(e, j[1]) for (n, j), e in zip(jobs, episodes, strict=True) if n == name]
-        as_is = np.array([e["tag_m"] for e, _ in sorted(runs, key=lambda r: r[1]) if e["arm"] != "no_cov"])
-        no_cov = np.array([e["tag_m"] for e, _ in sorted(runs, key=lambda r: r[1]) if e["arm"] == "no_cov"])
-        gain = paired_relative_improvement(no_cov, as_is)
-        gains.append(gain)
-        figures.update({f"tracker_no_cov_improvement_{name}": gain.value,
-                        f"tracker_no_cov_improvement_{name}_ci_low": gain.ci_low,
-                        f"tracker_no_cov_improvement_{name}_ci_high": gain.ci_high})
-        rows.append([name, base_spec(bases[name]), float(iqm(as_is)), float(iqm(no_cov)),
-                     f"{gain.value:+.2%} [{gain.ci_low:+.2%}, {gain.ci_high:+.2%}]"])
-    figures.update({"tracker_no_cov_suite_seeds": n_seeds,
-                    "tracker_no_cov_scenarios_better": sum(g.ci_low > 0 for g in gains),
-                    "tracker_no_cov_scenarios_worse": sum(g.ci_high < 0 for g in gains),
-                    "tracker_no_cov_scenarios": len(gains)})
+        tag = _paired_arms([e for (n, _), e in zip(jobs, episodes, strict=True) if n == name], arms)
+        row = [name, base_spec(bases[name]), float(iqm(tag["as_is"]))]
+        for arm in arms[1:]:
+            gain = paired_relative_improvement(tag[arm], tag["as_is"])
+            better[arm] += gain.ci_low > 0
+            worse[arm] += gain.ci_high < 0
+            figures.update({f"tracker_{arm}_improvement_{name}": gain.value,
+                            f"tracker_{arm}_improvement_{name}_ci_low": gain.ci_low,
+                            f"tracker_{arm}_improvement_{name}_ci_high": gain.ci_high})
+            row += [float(iqm(tag[arm])), f"{gain.value:+.2%} [{gain.ci_low:+.2%}, {gain.ci_high:+.2%}]"]
+        rows.append(row)
+    figures.update({"tracker_suite_seeds": n_seeds, "tracker_suite_scenarios": len(suite)})
+    for arm in arms[1:]:
+        figures.update({f"tracker_{arm}_scenarios_better": int(better[arm]),
+                        f"tracker_{arm}_scenarios_worse": int(worse[arm])})
     return figures, rows
 
 
@@ -560,9 +613,11 @@ def main() -> None:
                     ["tracker belief", "IQM tag m", "improvement", "return"], rows)
         more, rows = no_covariance_suite(10 if a.quick else 100, a.workers)
         figures.update(more)
-        print_table("every suite scenario, its tuned base rule: the tag tracker without anchor covariances vs as is "
-                    "(validation seeds; improvement: 1 - IQM / as is, paired, 95 % bootstrap CI)",
-                    ["scenario", "rule", "IQM as is", "IQM no covariances", "improvement"], rows)
+        print_table("every suite scenario, its tuned base rule: the tag tracker without anchor covariances, and with "
+                    "the calibrations' blocks in the constellation's gauge, vs as is (validation seeds; improvement: "
+                    "1 - IQM / as is, paired, 95 % bootstrap CI)",
+                    ["scenario", "rule", "IQM as is", "IQM no cov", "improvement", "IQM projected", "improvement"],
+                    rows)
         figures["bench_seconds"] = time.perf_counter() - started
         write_results("bench_departures_belief" + ("_quick" if a.quick else ""), figures, a.quick)
         return
