@@ -60,7 +60,10 @@ such runs (``--runs``; nothing is simulated for part 1):
    seeds; and with each calibration's per-anchor blocks taken from its joint covariance
    projected to the constellation's gauge (``tracker_projected_improvement``). The last two
    also on every suite scenario with its tuned base rule
-   (``tracker_<no_cov|projected>_improvement_<scenario>``, 100 of its validation seeds). A
+   (``tracker_<no_cov|projected>_improvement_<scenario>``, 100 of its validation seeds). The
+   default scenario's no-covariance arm is also scored in the fixed frame, which no alignment
+   touches (``tracker_no_cov_improvement_fixed_frame``): the env's tag error aligns the truth
+   to the anchors with equal weights, which could favour a tracker that weighs them equally. A
    diagnostic (the tracker is patched in the worker processes), not a fix.
 
 Writes benchmarks/results/bench_departures.json (``_quick`` with --quick); part 4 alone
@@ -470,6 +473,35 @@ def _tracker_episode(job) -> dict:
     return {"arm": arm, "seed": seed, "tag_m": out["mean_tag_error_m"], "return": out["return"]}
 
 
+def _fixed_frame_episode(job) -> dict:
+    """The rule's episode with or without the tracker's anchor covariances, scored both ways:
+    the env's tag error after the constellation's rigid alignment (equal weight per anchor,
+    ``mean_tag_error_m``, as ``run_episode`` scores it) and in the fixed frame, which no
+    alignment to the anchors' estimates touches (``mean_tag_error_fixed_frame_m``). An
+    alignment that weighs every anchor alike could favour a tracker that does too."""
+    from uwb_env.agents.registry import make_policy
+
+    from uwb_env.config import EnvConfig
+    from uwb_env.env.parallel_env import UWBCalibrationParallelEnv
+
+    rule, seed, use_cov = job
+    config = EnvConfig.from_dict({"max_cycles": 500, "action_mode": "per_anchor",
+                                  "solver": {"use_anchor_covariance": use_cov}})
+    env, policy = UWBCalibrationParallelEnv(config), make_policy(rule, config.sim.dt_s)
+    observations, infos = env.reset(seed=seed)
+    policy.reset(seed)
+    constellation, fixed = [], []
+    while env.agents:
+        observations, _, _, _, infos = env.step(policy.act(observations, infos))
+        if not infos:
+            break
+        info = next(iter(infos.values()))
+        constellation.append(info["mean_tag_error_m"])
+        fixed.append(info["mean_tag_error_fixed_frame_m"])
+    return {"use_cov": use_cov, "seed": seed, "constellation": float(np.mean(constellation)),
+            "fixed": float(np.mean(fixed))}
+
+
 def _paired_arms(episodes: list[dict], arms) -> dict:
     """Per arm, the tag errors in seed order."""
     return {a: np.array([e["tag_m"] for e in sorted((e for e in episodes if e["arm"] == a), key=lambda e: e["seed"])])
@@ -503,6 +535,20 @@ def belief(rule: str, n_seeds: int, workers: int) -> tuple[dict, list[list]]:
                         f"tracker_{key}_improvement_ci_high": gain.ci_high, f"tracker_return_{key}": ret[arm]})
         rows.append([label, float(iqm(tag[arm])), f"{gain.value:+.2%} [{gain.ci_low:+.2%}, {gain.ci_high:+.2%}]",
                      ret[arm]])
+    jobs = [(rule, VALIDATION_SEED + i, use_cov) for i in range(n_seeds) for use_cov in (True, False)]
+    with ProcessPoolExecutor(workers) as pool:
+        scored = list(pool.map(_fixed_frame_episode, jobs, chunksize=4))
+    for frame in ("constellation", "fixed"):
+        with_cov, without = (np.array([e[frame] for e in sorted(scored, key=lambda e: e["seed"]) if e["use_cov"] is c])
+                             for c in (True, False))
+        gain = paired_relative_improvement(without, with_cov)
+        figures.update({f"tracker_no_cov_improvement_{frame}_frame": gain.value,
+                        f"tracker_no_cov_improvement_{frame}_frame_ci_low": gain.ci_low,
+                        f"tracker_no_cov_improvement_{frame}_frame_ci_high": gain.ci_high,
+                        f"tracker_iqm_m_{frame}_frame_as_is": float(iqm(with_cov)),
+                        f"tracker_iqm_m_{frame}_frame_no_cov": float(iqm(without))})
+        rows.append([f"no anchor covariances, scored in the {frame} frame", float(iqm(without)),
+                     f"{gain.value:+.2%} [{gain.ci_low:+.2%}, {gain.ci_high:+.2%}] (as is {iqm(with_cov):.4f})", ""])
     return figures, rows
 
 
