@@ -39,16 +39,16 @@ such runs (``--runs``; nothing is simulated for part 1):
 4. **``--attribution``: what the rollout's headroom is made of.** The rollout over the tuned
    rule, on the same validation seeds, with futures that forget part of the truth
    (``ForgetfulRollout``): the tags' motion plans, or the anchors' true positions (drawn from
-   the anchors' own belief instead, as the system predicts it, or rescaled to the size of the
-   true errors: ``belief_scale``, measured first on 10 of the seeds). Where forgetting the anchors' truth takes the gain
-   away, the headroom is information a deployment does not have, not planning it could do
-   (``attribution_improvement_<variant>`` over the rule, ``attribution_over_full_<variant>``
-   over the full rollout, each with its CI).
+   the anchors' own covariances instead, as the system predicts them, or rescaled to the size
+   of the true errors: ``belief_scale``, measured first on 10 of the seeds). Where forgetting
+   the anchors' truth takes the gain away, the gain comes from information a deployment does
+   not have rather than from planning on what it has (``attribution_improvement_<variant>``
+   over the rule, ``attribution_over_full_<variant>`` over the full rollout, each with its CI).
 
     python benchmarks/bench_departures.py --runs runs/distilled_v2/seed0 runs/distilled_v2/seed1 \\
         runs/distilled_v2/seed2 [--oracle] [--attribution] [--quick]
     python benchmarks/bench_departures.py --only-attribution [--quick]   # part 4 alone, ~26 min
-    python benchmarks/bench_departures.py --only-belief [--quick]        # part 5 alone, ~1 min
+    python benchmarks/bench_departures.py --only-belief [--quick]        # part 5 alone, ~4 min
 
 5. **``--only-belief``: how wide the anchors' belief is**, and what a belief of the right size
    would give the tags. ``belief_scale``: the true squared constellation error of the anchors
