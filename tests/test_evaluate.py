@@ -180,3 +180,16 @@ def test_per_anchor_heuristics_get_their_actions_in_the_same_scenario():
     assert per_anchor["calibrations_per_min"] > 0 and np.isfinite(per_anchor["mean_tag_error_m"])
     assert "per_anchor_threshold" in FAMILIES  # the tuner tunes it like the team heuristics
     assert spec_of("per_anchor_threshold", 0.12) == "per_anchor_threshold:0.12"
+
+
+def test_summary_json_names_the_shipped_tuned_file_without_an_install_path(tmp_path):
+    """summary.json is committed as the main job's result: the same on any install."""
+    import json
+
+    from uwb_env.training.evaluate import DEFAULT_TUNED, write_outputs
+
+    results = {"summary": [{"policy": "fixed:10", "iqm_tag_error_m": 0.1}], "seeds": [1], "config": {},
+               "reference": None, "reference_kind": None, "tuned_file": str(DEFAULT_TUNED.resolve()),
+               "matched_budget": None, "episodes": []}
+    write_outputs(results, str(tmp_path), plots=False)
+    assert json.loads((tmp_path / "summary.json").read_text())["tuned_file"] == "the shipped training/tuned/default.json"

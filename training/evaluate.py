@@ -341,9 +341,11 @@ def write_outputs(results: dict, out: str, plots: bool = True) -> list[str]:
     written.append(sum_csv)
     sum_json = os.path.join(out, "summary.json")
     with open(sum_json, "w") as f:
+        # the tuned file as printed (the shipped one by name): no install or temporary path in results
+        tuned_file = _display_path(results["tuned_file"]) if results.get("tuned_file") else None
         json.dump({"summary": results["summary"], "seeds": results["seeds"], "config": results["config"],
-                   **{k: results.get(k) for k in ("reference", "reference_kind", "tuned_file", "matched_budget")}},
-                  f, indent=2)
+                   **{k: results.get(k) for k in ("reference", "reference_kind", "matched_budget")},
+                   "tuned_file": tuned_file}, f, indent=2)
     written.append(sum_json)
     if plots:
         written += write_plots(results, out)
