@@ -360,6 +360,25 @@ def _aligned_error_m2(est: np.ndarray, truth: np.ndarray) -> float:
     return float(((est - (truth @ rot.T + trans)) ** 2).sum())
 
 
+def _rule_steps(rule: str, seed: int, overrides: dict | None = None):
+    """Run ``rule`` for one episode of the default scenario with per-anchor actions (``overrides``:
+    more env config keys); yield (step index, env, infos) after every step."""
+    from uwb_env.agents.registry import make_policy
+
+    from uwb_env.config import EnvConfig
+    from uwb_env.env.parallel_env import UWBCalibrationParallelEnv
+
+    config = EnvConfig.from_dict({"max_cycles": 500, "action_mode": "per_anchor", **(overrides or {})})
+    env, policy = UWBCalibrationParallelEnv(config), make_policy(rule, config.sim.dt_s)
+    observations, infos = env.reset(seed=seed)
+    policy.reset(seed)
+    for t in range(config.max_cycles):
+        observations, _, _, _, infos = env.step(policy.act(observations, infos))
+        yield t, env, infos
+        if not env.agents:
+            return
+
+
 def belief_scale(rule: str, n_seeds: int, every_steps: int = 10, draws: int = 20) -> dict:
     """How wide the anchors' belief is: over ``rule``'s episodes on ``n_seeds`` validation
     seeds, every ``every_steps`` steps (no round running), the true summed squared
@@ -371,21 +390,11 @@ def belief_scale(rule: str, n_seeds: int, every_steps: int = 10, draws: int = 20
     calibration's gauge and with ``_predicted_covariance``'s floor of one range std per axis;
     not the joint covariance, which the drawn-independently blocks can overstate (anchor 0's
     calibration block is zero in that gauge, the far anchors' carry the frame's uncertainty)."""
-    from uwb_env.agents.registry import make_policy
-
-    from uwb_env.config import EnvConfig
-    from uwb_env.env.parallel_env import UWBCalibrationParallelEnv
-
-    config = EnvConfig.from_dict({"max_cycles": 500, "action_mode": "per_anchor"})
     rng = np.random.default_rng(0xBE11EF)
     true_m2, belief_m2 = [], []
     for i in range(n_seeds):
-        env, policy = UWBCalibrationParallelEnv(config), make_policy(rule, config.sim.dt_s)
-        observations, infos = env.reset(seed=VALIDATION_SEED + i)
-        policy.reset(VALIDATION_SEED + i)
-        system = env.system
-        for t in range(config.max_cycles):
-            observations, _, _, _, infos = env.step(policy.act(observations, infos))
+        for t, env, _ in _rule_steps(rule, VALIDATION_SEED + i):
+            system = env.system
             if not env.agents:
                 break
             if t % every_steps or system.world.round is not None:
@@ -479,20 +488,9 @@ def _fixed_frame_episode(job) -> dict:
     ``mean_tag_error_m``, as ``run_episode`` scores it) and in the fixed frame, which no
     alignment to the anchors' estimates touches (``mean_tag_error_fixed_frame_m``). An
     alignment that weighs every anchor alike could favour a tracker that does too."""
-    from uwb_env.agents.registry import make_policy
-
-    from uwb_env.config import EnvConfig
-    from uwb_env.env.parallel_env import UWBCalibrationParallelEnv
-
     rule, seed, use_cov = job
-    config = EnvConfig.from_dict({"max_cycles": 500, "action_mode": "per_anchor",
-                                  "solver": {"use_anchor_covariance": use_cov}})
-    env, policy = UWBCalibrationParallelEnv(config), make_policy(rule, config.sim.dt_s)
-    observations, infos = env.reset(seed=seed)
-    policy.reset(seed)
     constellation, fixed = [], []
-    while env.agents:
-        observations, _, _, _, infos = env.step(policy.act(observations, infos))
+    for _, _, infos in _rule_steps(rule, seed, {"solver": {"use_anchor_covariance": use_cov}}):
         if not infos:
             break
         info = next(iter(infos.values()))
