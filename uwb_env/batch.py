@@ -275,7 +275,7 @@ class BatchedSystem:
         previous = np.full((len(sel), self.M, 2), np.nan) if cold else st.tag_fix[rows]
         step = fix_tags_2d(anchors, previous, ranges, self.range_std_m**2, self.predicted_anchor_var_m2()[rows],
                            st.calibration_var_m2[rows], st.anchor_cov[rows] if solver.use_anchor_covariance
-                           else None, solver.loss, solver.f_scale_sigmas, solver.tag_iterations,
+                           else None, solver.loss, solver.tag_f_scale_sigmas, solver.tag_iterations,
                            solver.tag_restart_residual_m)
         st.tag_status[rows] = step.status
         st.record_tag_fixes(rows, step.positions, step.rms_m, step.tag_residual_m, step.anchor_residual_m,

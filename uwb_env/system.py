@@ -429,7 +429,7 @@ class LocalizationSystem:
             # stuck tags from the closed form, mirror check, residual statistics)
             step = fix_tags_2d(anchors[None], st.tag_fix, ranges[None], self.range_std_m**2, pred_var[None],
                                st.calibration_var_m2, st.anchor_cov if solver.use_anchor_covariance else None,
-                               solver.loss, solver.f_scale_sigmas, solver.tag_iterations,
+                               solver.loss, solver.tag_f_scale_sigmas, solver.tag_iterations,
                                solver.tag_restart_residual_m)
             positions, rms = step.positions, step.rms_m
             self.tag_refits += int(step.refit.sum())
@@ -456,13 +456,13 @@ class LocalizationSystem:
         restart_m = solver.tag_restart_residual_m + 2.0 * math.sqrt(float(pred_var.max()))
         fix = locate_tags(
             anchors, ranges, self.range_std_m, anchor_covariance=cov, loss=solver.loss,
-            f_scale=solver.f_scale_sigmas, initial=self.tag_fix, max_iterations=solver.tag_iterations,
+            f_scale=solver.tag_f_scale_sigmas, initial=self.tag_fix, max_iterations=solver.tag_iterations,
             with_covariance=False, restart_residual_m=restart_m,
         )
         positions, rms = fix.positions, np.where(fix.ok, fix.residual_rms_m, np.nan)
         var = self.range_std_m**2 + float(pred_var.mean()) / 2
         checked, status, switched = check_mirror_3d(anchors, positions, ranges, var, cov, solver.loss,
-                                                    solver.f_scale_sigmas)
+                                                    solver.tag_f_scale_sigmas)
         if switched.any():
             positions = checked
             self.tag_mirror_switches += int(switched.sum())
