@@ -186,7 +186,8 @@ def main() -> None:
     p.add_argument("--quick", action="store_true")
     p.add_argument("--models", nargs="+", default=[str(ROOT / f"runs/anchor_set/seed{i}") for i in range(3)],
                    help="training outputs, one per training seed (training/train_anchor_set.py --out: each one's "
-                   "best/ is used; training/train_distilled.py --out: its model.npz)")
+                   "best/ is used; training/train_distilled.py --out: its model.npz; or a shipped model's folder, e.g. "
+                   "agents/models/anchor_set)")
     p.add_argument("--scenarios", nargs="*", default=None, help="default: the whole suite")
     p.add_argument("--test-seeds", type=int, default=100)
     p.add_argument("--val-seeds", type=int, default=10)
@@ -224,9 +225,19 @@ def main() -> None:
     started = time.perf_counter()
     models = []
     for m in a.models:
-        summary = json.loads((Path(m) / "summary.json").read_text())
-        # train_anchor_set keeps its checkpoint in best/model.zip; train_distilled names its file
-        path = Path(m) / summary.get("model", "best/model.zip")
+        if (Path(m) / "summary.json").is_file():
+            summary = json.loads((Path(m) / "summary.json").read_text())
+            # train_anchor_set keeps its checkpoint in best/model.zip; train_distilled names its file
+            path = Path(m) / summary.get("model", "best/model.zip")
+        elif (Path(m) / "model.zip").is_file() and (Path(m) / "run.json").is_file():
+            # a shipped checkpoint (agents/models/anchor_set): its run.json records the training
+            # seed, the checkpoint's step and validation return, not the training's wall time
+            run = json.loads((Path(m) / "run.json").read_text())
+            summary = {"seed": run["args"]["seed"], "best_val_return": run["val_return"], "wall_s": None,
+                       "steps": run["step"]}
+            path = Path(m) / "model.zip"
+        else:
+            p.error(f"--models {m}: neither a training output (summary.json) nor a shipped model (model.zip, run.json)")
         record = path.with_name("run.json")
         run = json.loads(record.read_text()) if record.is_file() else {}
         models.append({"path": str(path), "seed": summary["seed"], "kind": run.get("env", "unknown"),
