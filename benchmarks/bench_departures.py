@@ -75,7 +75,10 @@ such runs (``--runs``; nothing is simulated for part 1):
    tuned base rule, scales ``TRACKER_SCALES`` against 3.0 on 100 validation seeds; the chosen
    scale (the highest mean improvement among those worse beyond the CI on none) is then
    checked against 3.0 on 100 test seeds per scenario and, on the default scenario, in the
-   fixed frame. It chose the default of ``SolverConfig.tag_f_scale_sigmas``.
+   fixed frame. It chose the default of ``SolverConfig.tag_f_scale_sigmas``. The committed
+   JSON is the run at d150f96, on the base rules of that time (harsh_radio ``0.4243`` and
+   three_anchors ``drift:0.15``, re-tuned since on the new scale); runs since also record the
+   code version, the base rules and the test seeds' IQMs.
 
 Writes benchmarks/results/bench_departures.json (``_quick`` with --quick); part 4 alone
 bench_departures_attribution.json, part 5 alone bench_departures_belief.json, part 6 alone
@@ -642,8 +645,12 @@ def tracker_scale(n_seeds: int, n_test_seeds: int, workers: int) -> tuple[dict, 
         return {name: _paired_arms([e for (n, _), e in zip(jobs, episodes, strict=True) if n == name], arms)
                 for name in suite}
 
+    from bench_protocol import code_version
+
     figures: dict = {"tracker_scales": " ".join(map(str, TRACKER_SCALES)), "tracker_scale_reference": 3.0,
-                     "tracker_scale_seeds": n_seeds, "tracker_scale_test_seeds": n_test_seeds}
+                     "tracker_scale_seeds": n_seeds, "tracker_scale_test_seeds": n_test_seeds,
+                     "tracker_scale_code_version": code_version(),
+                     "tracker_scale_base_rules": json.dumps(bases, sort_keys=True)}
     tags = compare("validation", arms, n_seeds)
     rows, verdict = [], {}
     for name in suite:
@@ -667,14 +674,17 @@ def tracker_scale(n_seeds: int, n_test_seeds: int, workers: int) -> tuple[dict, 
         summary.append(f"{mean:+.2%} ({better} / {worse})")
     rows.append(summary)
     eligible = [a for a in arms[1:] if figures[f"tracker_scale_{_scale_key(a)}_scenarios_worse"] == 0]
-    chosen = max(eligible, key=lambda a: figures[f"tracker_scale_{_scale_key(a)}_mean_improvement"])
+    # none qualifying: keep the reference (the test-seed check then compares it with itself)
+    chosen = max(eligible, key=lambda a: figures[f"tracker_scale_{_scale_key(a)}_mean_improvement"], default=ref)
     figures["tracker_scale_chosen"] = float(chosen.partition(":")[2])
     test = compare("test", (ref, chosen), n_test_seeds)
     test_rows, better, worse = [], 0, 0
     for name in suite:
         gain = paired_relative_improvement(test[name][chosen], test[name][ref])
         better, worse = better + (gain.ci_low > 0), worse + (gain.ci_high < 0)
-        figures.update({f"tracker_scale_test_improvement_{name}": gain.value,
+        figures.update({f"tracker_scale_test_iqm_m_reference_{name}": float(iqm(test[name][ref])),
+                        f"tracker_scale_test_iqm_m_chosen_{name}": float(iqm(test[name][chosen])),
+                        f"tracker_scale_test_improvement_{name}": gain.value,
                         f"tracker_scale_test_improvement_{name}_ci_low": gain.ci_low,
                         f"tracker_scale_test_improvement_{name}_ci_high": gain.ci_high})
         test_rows.append([name, float(iqm(test[name][ref])), float(iqm(test[name][chosen])),

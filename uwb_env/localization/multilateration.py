@@ -85,7 +85,11 @@ def locate_tags(
         ranges_m: (T, N) bias-corrected ranges; NaN where missing.
         range_std_m: scalar or (T, N) std of each range.
         anchor_covariance: optional (N, dim, dim) anchor position covariance.
-        loss, f_scale: robust loss (see ``robust``) and its scale in sigmas.
+        loss, f_scale: robust loss (see ``robust``) and its scale in sigmas. With
+            ``anchor_covariance`` a sigma includes the anchor's predicted error along the line
+            of sight; where that covariance carries the frame's uncertainty (a team calibration
+            in a fixed gauge), a stale anchor's bias sits well inside 3 of them and only a scale
+            near one down-weighs it (the env uses 0.7: ``SolverConfig.tag_f_scale_sigmas``).
         initial: optional (T, dim) warm start (e.g. the previous fix); rows with NaN fall back
             to the closed form.
         max_iterations, tol_m: Gauss-Newton stopping rule (largest step below ``tol_m``).
