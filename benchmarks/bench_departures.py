@@ -500,22 +500,31 @@ def _tracker_episode(job) -> dict:
     return {"arm": arm, "seed": seed, "tag_m": out["mean_tag_error_m"], "return": out["return"]}
 
 
-def _fixed_frame_episode(job) -> dict:
-    """The rule's episode with or without the tracker's anchor covariances, scored both ways:
+def _frame_episode(job) -> dict:
+    """The rule's episode of the default scenario with ``solver`` config keys, scored both ways:
     the env's tag error after the constellation's rigid alignment (equal weight per anchor,
     ``mean_tag_error_m``, as ``run_episode`` scores it) and in the fixed frame, which no
     alignment to the anchors' estimates touches (``mean_tag_error_fixed_frame_m``). An
     alignment that weighs every anchor alike could favour a tracker that does too."""
-    rule, seed, use_cov = job
+    rule, seed, solver = job
     constellation, fixed = [], []
-    for _, _, infos in _rule_steps(rule, seed, {"solver": {"use_anchor_covariance": use_cov}}):
+    for _, _, infos in _rule_steps(rule, seed, {"solver": solver}):
         if not infos:
             break
         info = next(iter(infos.values()))
         constellation.append(info["mean_tag_error_m"])
         fixed.append(info["mean_tag_error_fixed_frame_m"])
-    return {"use_cov": use_cov, "seed": seed, "constellation": float(np.mean(constellation)),
-            "fixed": float(np.mean(fixed))}
+    return {"seed": seed, "constellation": float(np.mean(constellation)), "fixed": float(np.mean(fixed))}
+
+
+def _frame_scores(rule: str, n_seeds: int, solvers: list[dict], workers: int) -> list[dict]:
+    """``_frame_episode`` for each of ``solvers`` on the same ``n_seeds`` validation seeds: per
+    solver, {"constellation": (n_seeds,), "fixed": (n_seeds,)} in seed order (paired)."""
+    jobs = [(rule, VALIDATION_SEED + i, solver) for solver in solvers for i in range(n_seeds)]
+    with ProcessPoolExecutor(workers) as pool:
+        scored = list(pool.map(_frame_episode, jobs, chunksize=4))
+    return [{frame: np.array([e[frame] for e in scored[k * n_seeds:(k + 1) * n_seeds]])
+             for frame in ("constellation", "fixed")} for k in range(len(solvers))]
 
 
 def _paired_arms(episodes: list[dict], arms) -> dict:
@@ -551,12 +560,10 @@ def belief(rule: str, n_seeds: int, workers: int) -> tuple[dict, list[list]]:
                         f"tracker_{key}_improvement_ci_high": gain.ci_high, f"tracker_return_{key}": ret[arm]})
         rows.append([label, float(iqm(tag[arm])), f"{gain.value:+.2%} [{gain.ci_low:+.2%}, {gain.ci_high:+.2%}]",
                      ret[arm]])
-    jobs = [(rule, VALIDATION_SEED + i, use_cov) for i in range(n_seeds) for use_cov in (True, False)]
-    with ProcessPoolExecutor(workers) as pool:
-        scored = list(pool.map(_fixed_frame_episode, jobs, chunksize=4))
+    scores = _frame_scores(rule, n_seeds, [{"use_anchor_covariance": True}, {"use_anchor_covariance": False}],
+                           workers)
     for frame in ("constellation", "fixed"):
-        with_cov, without = (np.array([e[frame] for e in sorted(scored, key=lambda e: e["seed"]) if e["use_cov"] is c])
-                             for c in (True, False))
+        with_cov, without = scores[0][frame], scores[1][frame]
         gain = paired_relative_improvement(without, with_cov)
         figures.update({f"tracker_no_cov_improvement_{frame}_frame": gain.value,
                         f"tracker_no_cov_improvement_{frame}_frame_ci_low": gain.ci_low,
@@ -581,13 +588,10 @@ def no_covariance_suite(n_seeds: int, workers: int) -> tuple[dict, list[list]]:
     suite = load_suite()
     bases = json.loads((ROOT / "training/tuned/suite_learned_base.json").read_text())["base"]
     arms = ("as_is", "no_cov", "projected")
-    jobs = [(name, (base_spec(bases[name]), entry["seeds"]["validation"][0] + i, a, entry["config"],
-                    entry["max_cycles"])) for name, entry in suite.items() for i in range(n_seeds) for a in arms]
-    with ProcessPoolExecutor(workers) as pool:
-        episodes = list(pool.map(_tracker_episode, [j for _, j in jobs], chunksize=8))
+    tags = _suite_tags(suite, bases, arms, n_seeds, "validation", workers)
     figures, rows, better, worse = {}, [], dict.fromkeys(arms[1:], 0), dict.fromkeys(arms[1:], 0)
     for name in suite:
-        tag = _paired_arms([e for (n, _), e in zip(jobs, episodes, strict=True) if n == name], arms)
+        tag = tags[name]
         row = [name, base_spec(bases[name]), float(iqm(tag["as_is"]))]
         for arm in arms[1:]:
             gain = paired_relative_improvement(tag[arm], tag["as_is"])
@@ -613,11 +617,18 @@ def _scale_key(arm: str) -> str:
     return arm.partition(":")[2].replace(".", "p")
 
 
-def _suite_jobs(suite: dict, bases: dict, arms, n_seeds: int, block: str) -> list:
+def _suite_tags(suite: dict, bases: dict, arms, n_seeds: int, block: str, workers: int) -> dict:
+    """``_tracker_episode`` for every suite scenario (its tuned base rule ``bases``) and arm on the
+    first ``n_seeds`` of the scenario's ``block`` seeds: {scenario: {arm: tag errors in seed
+    order}} (paired across arms)."""
     from uwb_env.agents.distilled import base_spec
 
-    return [(name, (base_spec(bases[name]), entry["seeds"][block][0] + i, a, entry["config"], entry["max_cycles"]))
+    jobs = [(name, (base_spec(bases[name]), entry["seeds"][block][0] + i, a, entry["config"], entry["max_cycles"]))
             for name, entry in suite.items() for i in range(n_seeds) for a in arms]
+    with ProcessPoolExecutor(workers) as pool:
+        episodes = list(pool.map(_tracker_episode, [j for _, j in jobs], chunksize=8))
+    return {name: _paired_arms([e for (n, _), e in zip(jobs, episodes, strict=True) if n == name], arms)
+            for name in suite}
 
 
 def tracker_scale(n_seeds: int, n_test_seeds: int, workers: int) -> tuple[dict, list[list], list[list]]:
@@ -638,20 +649,13 @@ def tracker_scale(n_seeds: int, n_test_seeds: int, workers: int) -> tuple[dict, 
     arms = tuple(f"tag_f:{x}" for x in TRACKER_SCALES)
     ref = arms[0]
 
-    def compare(block: str, arms: tuple, count: int) -> dict:
-        jobs = _suite_jobs(suite, bases, arms, count, block)
-        with ProcessPoolExecutor(workers) as pool:
-            episodes = list(pool.map(_tracker_episode, [j for _, j in jobs], chunksize=8))
-        return {name: _paired_arms([e for (n, _), e in zip(jobs, episodes, strict=True) if n == name], arms)
-                for name in suite}
-
     from bench_protocol import code_version
 
     figures: dict = {"tracker_scales": " ".join(map(str, TRACKER_SCALES)), "tracker_scale_reference": 3.0,
                      "tracker_scale_seeds": n_seeds, "tracker_scale_test_seeds": n_test_seeds,
                      "tracker_scale_code_version": code_version(),
                      "tracker_scale_base_rules": json.dumps(bases, sort_keys=True)}
-    tags = compare("validation", arms, n_seeds)
+    tags = _suite_tags(suite, bases, arms, n_seeds, "validation", workers)
     rows, verdict = [], {}
     for name in suite:
         row = [name, float(iqm(tags[name][ref]))]
@@ -677,7 +681,7 @@ def tracker_scale(n_seeds: int, n_test_seeds: int, workers: int) -> tuple[dict, 
     # none qualifying: keep the reference (the test-seed check then compares it with itself)
     chosen = max(eligible, key=lambda a: figures[f"tracker_scale_{_scale_key(a)}_mean_improvement"], default=ref)
     figures["tracker_scale_chosen"] = float(chosen.partition(":")[2])
-    test = compare("test", (ref, chosen), n_test_seeds)
+    test = _suite_tags(suite, bases, (ref, chosen), n_test_seeds, "test", workers)
     test_rows, better, worse = [], 0, 0
     for name in suite:
         gain = paired_relative_improvement(test[name][chosen], test[name][ref])
@@ -692,12 +696,10 @@ def tracker_scale(n_seeds: int, n_test_seeds: int, workers: int) -> tuple[dict, 
     figures.update({"tracker_scale_test_scenarios_better": better, "tracker_scale_test_scenarios_worse": worse})
     from uwb_env.agents.distilled import base_spec
 
-    rule = base_spec(bases["default"])
-    jobs = [(rule, VALIDATION_SEED + i, x) for i in range(n_seeds) for x in (3.0, figures["tracker_scale_chosen"])]
-    with ProcessPoolExecutor(workers) as pool:
-        scored = sorted(pool.map(_scale_frame_episode, jobs, chunksize=4), key=lambda e: e["seed"])
-    before = np.array([e["fixed"] for e in scored if e["scale"] == 3.0])
-    after = np.array([e["fixed"] for e in scored if e["scale"] != 3.0])
+    scores = _frame_scores(base_spec(bases["default"]), n_seeds,
+                           [{"tag_f_scale_sigmas": 3.0}, {"tag_f_scale_sigmas": figures["tracker_scale_chosen"]}],
+                           workers)
+    before, after = scores[0]["fixed"], scores[1]["fixed"]
     gain = paired_relative_improvement(after, before)
     figures.update({"tracker_scale_improvement_fixed_frame": gain.value,
                     "tracker_scale_improvement_fixed_frame_ci_low": gain.ci_low,
@@ -705,15 +707,6 @@ def tracker_scale(n_seeds: int, n_test_seeds: int, workers: int) -> tuple[dict, 
                     "tracker_scale_fixed_frame_iqm_m_before": float(iqm(before)),
                     "tracker_scale_fixed_frame_iqm_m_chosen": float(iqm(after))})
     return figures, rows, test_rows
-
-
-def _scale_frame_episode(job) -> dict:
-    """``rule``'s episode of the default scenario with the tracker's robust scale ``scale``,
-    scored in the fixed frame."""
-    rule, seed, scale = job
-    fixed = [next(iter(infos.values()))["mean_tag_error_fixed_frame_m"]
-             for _, _, infos in _rule_steps(rule, seed, {"solver": {"tag_f_scale_sigmas": scale}}) if infos]
-    return {"scale": scale, "seed": seed, "fixed": float(np.mean(fixed))}
 
 
 def attribution(rule: str, n_seeds: int, workers: int) -> tuple[dict, list[list]]:
