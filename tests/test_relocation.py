@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from scipy.special import chdtri
 
 from uwb_env.localization import InvalidRangeError
 from uwb_env.localization.errors import SolverArgumentError
@@ -50,6 +51,53 @@ def test_mirror_of_collinear_others_is_ambiguous_without_a_prior_and_decided_wit
     decided = relocate_anchor(r, others, 0.03**2, prior=np.array([4.2, 2.8]), prior_covariance=0.1 * np.eye(2))
     assert decided.status == "ok"
     np.testing.assert_allclose(decided.position, truth, atol=0.05)
+
+
+def test_3d_relocation_against_three_others_is_ambiguous_when_the_prior_cannot_pick_a_side():
+    """Three ranges in 3D: the anchor and its mirror across the others' plane fit them exactly.
+    With a vague height prior (a near-flat team's covariance, as on the three_d scenario's seed
+    1,000,017) the two intersections, about 1.2 m apart, both lie inside the answer's
+    covariance: the relocation used to pick one and report ok, on the wrong side in about half
+    of the draws. Now an answer reported ok is consistent with its covariance (the noise can
+    merge the two intersections into one minimum near the plane: that one is ok, with the
+    prior's height spread) and a sharp prior decides."""
+    rng = np.random.default_rng(2)
+    tilt = np.linalg.qr(np.array([[1.0, 0.2, 0.3], [-0.2, 1.0, 0.25], [0.1, -0.3, 1.0]]))[0]  # a tilted plane
+    others = np.array([[0.0, 0.0, 0.0], [8.0, 0.0, 0.0], [1.0, 8.0, 0.0]]) @ tilt.T
+    truth = np.array([6.0, 2.0, 0.6]) @ tilt.T  # 0.6 m off the others' plane
+    var = 0.0045
+    bound = chdtri(3, 1e-3)
+    for height_var, prior_height in ((5.1, 0.0), (5.1, 0.1), (5.1, 0.3), (0.01, 0.6)):
+        prior = np.array([6.05, 1.95, prior_height]) @ tilt.T  # 0.0: on the plane, its own mirror
+        cov = tilt @ np.diag([0.05, 0.05, height_var]) @ tilt.T
+        statuses = []
+        for _ in range(40):
+            r = np.linalg.norm(others - truth, axis=1) + rng.normal(0.0, np.sqrt(var), 3)
+            res = relocate_anchor(r, others, var, prior=prior, prior_covariance=cov)
+            statuses.append(res.status)
+            if res.ok:
+                e = res.position - truth
+                assert e @ np.linalg.solve(res.covariance, e) < bound, (prior_height, res.position)
+            if res.status == "ambiguous":  # the other intersection, on the other side of the plane
+                sides = [float(((p - others[0]) @ tilt)[2]) for p in (res.position, res.alternative)]
+                assert sides[0] * sides[1] < 0, sides
+        if height_var < 1.0:
+            assert statuses.count("ok") == 40
+        else:
+            assert statuses.count("ambiguous") >= 26, statuses
+
+
+def test_a_start_on_the_others_plane_does_not_stop_at_the_saddle():
+    """A prior on the plane of three others is its own mirror, and Gauss-Newton from it stays on
+    the plane (the saddle between the two intersections, by symmetry): the solver must still
+    find both intersections (noise-free ranges) and report the ambiguity, not the saddle."""
+    others = np.array([[0.0, 0.0, 0.0], [8.0, 0.0, 0.0], [1.0, 8.0, 0.0]])
+    truth = np.array([6.0, 2.0, 0.6])
+    r = np.linalg.norm(others - truth, axis=1)
+    res = relocate_anchor(r, others, 0.0045, prior=np.array([6.0, 2.0, 0.0]),
+                          prior_covariance=np.diag([0.05, 0.05, 5.1]))
+    assert res.status == "ambiguous"
+    np.testing.assert_allclose(sorted([res.position[2], res.alternative[2]]), [-0.6, 0.6], atol=0.05)
 
 
 def test_inconsistent_ranges_are_a_poor_fit():

@@ -13,10 +13,13 @@ Model (navlie style, :class:`RelocationModel`): residuals
 
 (the others' position covariance Sigma_j projected on the line of sight u_j), and the prior
 term L (p - p_prior) with L^T L = Sigma_prior^-1. Gauss-Newton with the analytic Jacobian from
-several starts: the prior, the linearized multilateration of the ranges, and the prior's
-mirror across the others' principal axis. A mirror solution that fits the ranges as well as
-the chosen one, with a prior too weak to tell them apart, makes the result ``ambiguous``;
-residuals the noise cannot explain make it ``poor_fit``. Neither is reported as success.
+several starts: the prior, the linearized multilateration of the ranges, the prior's mirror
+across the others' principal axis (plane in 3D), then the answer's own mirror (and, for an
+answer on that axis, two starts just off it: a start on it stays there). Another converged
+minimum that the ranges resolve from the answer (more than 3 range stds away) and whose total
+cost is within the margin makes the result ``ambiguous``: with three others in 3D both
+intersections fit the ranges exactly, and only the prior can pick a side. Residuals the noise
+cannot explain make it ``poor_fit``. Neither is reported as success.
 """
 
 from __future__ import annotations
@@ -200,6 +203,24 @@ def relocate_anchor(
     if not finite:
         raise GeometryError("degenerate geometry: the ranges and the prior do not fix the position")
     best = min(finite, key=lambda s: s[1])
+    # The answer's own mirror (the prior's mirror lands in the answer's basin when the prior lies
+    # near the others' line or plane: the other intersection was never tried). An answer on that
+    # line (plane) is its own mirror and may be the saddle between the two intersections (a start
+    # on it stays on it, by symmetry): then it is also nudged off both ways.
+    extra = []
+    plane = _principal(anchors)
+    if plane is not None:
+        centre, normal = plane
+        off = float((best[0] - centre) @ normal)
+        nudge = 3.0 * float(np.sqrt(var.max()))
+        extra.append(best[0] - 2.0 * off * normal)
+        if abs(off) < nudge:
+            extra += [best[0] + (nudge - off) * normal, best[0] - (nudge + off) * normal]
+    for start in extra:
+        other = solve(start)
+        if other[2] is not None and np.isfinite(other[1]):
+            finite.append(other)
+    best = min(finite, key=lambda s: s[1])
     p, total, a, s2, iterations, converged = best
     try:
         cov = np.linalg.inv(a)
@@ -211,14 +232,17 @@ def relocate_anchor(
     chi2 = float(r @ (r / s2))
     dof = len(ranges) - dim
     p_value = float(chdtrc(dof, chi2)) if dof > 0 else 1.0
-    # an alternative: a clearly different solution whose total cost is within the margin
+    # an alternative: another converged minimum whose total cost is within the margin. Another
+    # minimum is one the ranges resolve from the answer (farther than 3 of their stds), not one
+    # outside the answer's covariance: with no redundant range and a vague prior (a near-flat 3D
+    # team's heights) both intersections lie inside that covariance, 1.4 m apart.
     margin = float(chdtri(1, fit_alpha))
-    spread = 3.0 * float(np.sqrt(np.trace(cov)))
-    alternative = None
-    for q, tot, *_ in finite:
-        if np.linalg.norm(q - p) > max(spread, 1e-3) and tot - total <= margin:
-            alternative = q
-            break
+    resolved = 3.0 * float(np.sqrt(s2.max()))
+    # The best such competitor: a start on the plane itself stays there (the saddle between the
+    # two intersections, by symmetry), and the other intersection fits better than it.
+    rivals = [(tot, q) for q, tot, _, _, _, q_converged in finite
+              if q_converged and np.linalg.norm(q - p) > max(resolved, 1e-3) and tot - total <= margin]
+    alternative = min(rivals, key=lambda t: t[0])[1] if rivals else None
     if not converged:
         status = "not_converged"
     elif alternative is not None:
@@ -241,12 +265,20 @@ def _linearized(anchors: np.ndarray, ranges: np.ndarray) -> np.ndarray | None:
     return sol if rank == dim else None
 
 
+def _principal(anchors: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Centre and unit normal of the anchors' principal line (2D) / plane (3D), or None."""
+    if len(anchors) < 2:
+        return None
+    centre = anchors.mean(0)
+    _, _, vt = np.linalg.svd(anchors - centre)
+    return centre, vt[-1]
+
+
 def _mirror(p: np.ndarray, anchors: np.ndarray) -> np.ndarray | None:
     """p reflected across the anchors' principal line (2D) / plane (3D): the classic mirror minimum
     of near-collinear (near-coplanar) anchors."""
-    centre = anchors.mean(0)
-    if len(anchors) < 2:
+    plane = _principal(anchors)
+    if plane is None:
         return None
-    _, _, vt = np.linalg.svd(anchors - centre)
-    normal = vt[-1]
+    centre, normal = plane
     return p - 2.0 * ((p - centre) @ normal) * normal
