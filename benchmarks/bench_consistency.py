@@ -15,7 +15,9 @@ comes back ``ok`` and unambiguous is scored:
 
 This scores the shape and its covariance in the round's own gauge, not where the round puts
 the team in the running frame. Only rounds reported ok and unambiguous are scored, so the
-figures are lower bounds; 6 episodes per configuration give rough magnitudes (no CI).
+figures are lower bounds. Rounds of one episode share its layout and motion, so each mean's
+95 % interval (``*_ci95_low`` / ``*_ci95_high``) resamples whole episodes (a cluster bootstrap,
+2,000 draws; 30 episodes per configuration, ``--episodes``).
 
 An honest covariance gives a mean NEES equal to its rank, N dim - dim (dim + 1) / 2, and 0.1 %
 of rounds beyond the chi-square 99.9 % quantile. Figures per configuration (``<cfg>`` =
@@ -87,7 +89,7 @@ def run_config(dim: int, n: int, motion: str, nlos, episodes: int, steps: int) -
             fitted = np.linalg.norm(truth[result.pairs[:, 0]] - truth[result.pairs[:, 1]], axis=1)
             truth_chi2 = float(np.sum((fitted - result.ranges_m) ** 2 / result.range_var_m2))
             rounds.append((result.positions.copy(), result.covariance.copy(), tuple(result.gauge_refs), truth,
-                           truth_chi2 - result.chi2, bool(result.ambiguous)))
+                           truth_chi2 - result.chi2, bool(result.ambiguous), current["episode"]))
         return result
 
     def hand_back_all(*args, **kwargs):
@@ -103,20 +105,34 @@ def run_config(dim: int, n: int, motion: str, nlos, episodes: int, steps: int) -
         for seed in range(SEED_BASE, SEED_BASE + episodes):
             env = parallel_env(sim=sim, max_cycles=steps)
             env.reset(seed=seed)
-            current["system"] = env.system
+            current["system"], current["episode"] = env.system, seed - SEED_BASE
             for t in range(steps):
                 env.step({a: int(t % 10 == 0) for a in env.agents})
             current.clear()
     finally:
         team_state.calibrate_anchors, team_state.later_calibrations = solve, batched
-    out = {"nees": [], "sq": [], "gap": [], "ambiguous": []}
-    for x, cov, refs, truth, chi2_gap, ambiguous in rounds:
+    out = {"nees": [], "sq": [], "gap": [], "ambiguous": [], "episode": []}
+    for x, cov, refs, truth, chi2_gap, ambiguous, episode in rounds:
         value, err = gauge_nees(x, cov, refs, truth)
         out["nees"].append(value)
         out["sq"].append(float(np.sum(err**2)) / n)
         out["gap"].append(chi2_gap)
         out["ambiguous"].append(ambiguous)
+        out["episode"].append(episode)
     return {k: np.array(v) for k, v in out.items()}
+
+
+def episode_bootstrap(values: np.ndarray, episodes: np.ndarray, draws: int = 2000, seed: int = 0) -> tuple:
+    """95 % percentile interval of the mean of ``values`` (one per round) resampling whole
+    episodes (the rounds of one episode are not independent); NaNs without rounds."""
+    ids = np.unique(episodes)
+    if len(ids) < 2:
+        return float("nan"), float("nan")
+    sums = np.array([values[episodes == e].sum() for e in ids])
+    counts = np.array([np.sum(episodes == e) for e in ids], dtype=float)
+    pick = np.random.default_rng(seed).integers(0, len(ids), (draws, len(ids)))
+    means = sums[pick].sum(1) / np.maximum(counts[pick].sum(1), 1.0)
+    return float(np.percentile(means, 2.5)), float(np.percentile(means, 97.5))
 
 
 def main() -> None:
@@ -124,14 +140,17 @@ def main() -> None:
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true")
+    p.add_argument("--episodes", type=int, default=None, help="episodes per configuration (30; 2 with --quick)")
     a = p.parse_args()
-    episodes, steps = (2, 100) if a.quick else (6, 300)
+    episodes, steps = (2, 100) if a.quick else (30, 300)
+    episodes = a.episodes or episodes
     started = time.perf_counter()
     figures, rows = {"episodes_per_config": episodes, "steps_per_episode": steps}, []
     for dim, n, motion, nlos in CONFIGS:
         every = run_config(dim, n, motion, nlos, episodes, steps)
         scored = ~every["ambiguous"]
         nees, sq, gap = every["nees"][scored], every["sq"][scored], every["gap"][scored]
+        clusters = every["episode"][scored]
         rank = n * dim - dim * (dim + 1) // 2
         cfg = name_of(dim, n, motion, nlos)
         over = float(nees.mean() / rank) if len(nees) else float("nan")
@@ -149,7 +168,13 @@ def main() -> None:
                         f"shape_rmse_m_all_ok_{cfg}": float(np.sqrt(every["sq"].mean())) if len(every["sq"]) else None,
                         f"worst_nees_over_rank_{cfg}": None if worst is None else float(every["nees"][worst] / rank),
                         f"worst_truth_chi2_gap_{cfg}": None if worst is None else float(every["gap"][worst])})
-        rows.append([cfg, len(nees), ambiguous, rank, over, over_all, median, beyond, gap_over, rmse])
+        low, high = episode_bootstrap(nees / rank, clusters)
+        gap_low, gap_high = episode_bootstrap(gap / rank, clusters)
+        figures.update({f"nees_over_rank_{cfg}_ci95_low": low, f"nees_over_rank_{cfg}_ci95_high": high,
+                        f"truth_chi2_gap_over_rank_{cfg}_ci95_low": gap_low,
+                        f"truth_chi2_gap_over_rank_{cfg}_ci95_high": gap_high})
+        rows.append([cfg, len(nees), ambiguous, rank, f"{over:.2f} [{low:.2f}, {high:.2f}]", over_all, median, beyond,
+                     f"{gap_over:.2f} [{gap_low:.2f}, {gap_high:.2f}]", rmse])
     figures["bench_seconds"] = time.perf_counter() - started
     print_table("later calibrations in the env: NEES / rank (1 = honest), share beyond the 99.9 % quantile",
                 ["config", "rounds", "ambiguous", "rank", "mean/rank", "all ok", "median/rank", "beyond 99.9 %",
