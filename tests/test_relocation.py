@@ -71,7 +71,7 @@ def test_3d_relocation_against_three_others_is_ambiguous_when_the_prior_cannot_p
         prior = np.array([6.05, 1.95, prior_height]) @ tilt.T  # 0.0: on the plane, its own mirror
         cov = tilt @ np.diag([0.05, 0.05, height_var]) @ tilt.T
         statuses = []
-        for _ in range(40):
+        for _ in range(60):
             r = np.linalg.norm(others - truth, axis=1) + rng.normal(0.0, np.sqrt(var), 3)
             res = relocate_anchor(r, others, var, prior=prior, prior_covariance=cov)
             statuses.append(res.status)
@@ -82,9 +82,9 @@ def test_3d_relocation_against_three_others_is_ambiguous_when_the_prior_cannot_p
                 sides = [float(((p - others[0]) @ tilt)[2]) for p in (res.position, res.alternative)]
                 assert sides[0] * sides[1] < 0, sides
         if height_var < 1.0:
-            assert statuses.count("ok") == 40
-        else:
-            assert statuses.count("ambiguous") >= 26, statuses
+            assert statuses.count("ok") == 60
+        else:  # 41-48 of 60 over seeds 0-19 (the rest: one minimum left near the plane, or not converged)
+            assert statuses.count("ambiguous") >= 39, statuses
 
 
 def test_a_start_on_the_others_plane_does_not_stop_at_the_saddle():
@@ -98,6 +98,30 @@ def test_a_start_on_the_others_plane_does_not_stop_at_the_saddle():
                           prior_covariance=np.diag([0.05, 0.05, 5.1]))
     assert res.status == "ambiguous"
     np.testing.assert_allclose(sorted([res.position[2], res.alternative[2]]), [-0.6, 0.6], atol=0.05)
+
+
+def test_a_rival_that_settles_slowly_still_counts():
+    """Near the others' plane Gauss-Newton can take 20-25 steps to settle; with a budget of 20
+    the other intersection came back unconverged, was dropped as a rival, and this draw (from a
+    review's near-plane generator) was reported ok on the wrong side with NEES 23.9."""
+    others = np.array([[2.2607078726658507, -5.470304362613103, 0.0], [7.983211965664845, 5.984549144573608, 0.0],
+                       [7.5023983373860315, -5.128190266750549, 0.0]])
+    r = np.array([6.499981917830373, 6.595121362602516, 5.069209834151192])
+    prior = np.array([6.110063070700781, -0.18521097720066426, -0.4203564946137932])
+    res = relocate_anchor(r, others, 0.00245803508430186, prior=prior, prior_covariance=np.diag([0.04, 0.04, 1.0]),
+                          others_covariance=np.tile(0.06**2 * np.eye(3), (3, 1, 1)))
+    assert res.status == "ambiguous"
+    assert res.position[2] * res.alternative[2] < 0  # the two intersections, either side of z = 0
+
+
+def test_a_start_that_settles_on_its_last_iteration_has_converged():
+    others = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]])
+    r = np.linalg.norm(others - np.array([3.0, 4.0]), axis=1) + np.array([0.02, -0.01, 0.015, -0.02])
+    free = relocate_anchor(r, others, 0.03**2, max_iterations=200)
+    assert free.ok
+    tight = relocate_anchor(r, others, 0.03**2, max_iterations=free.iterations)
+    assert tight.status == "ok" and tight.iterations == free.iterations
+    np.testing.assert_allclose(tight.position, free.position)
 
 
 def test_inconsistent_ranges_are_a_poor_fit():

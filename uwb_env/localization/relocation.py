@@ -96,7 +96,7 @@ def relocate_anchor(
     others_covariance: np.ndarray | None = None,
     prior: np.ndarray | None = None,
     prior_covariance: np.ndarray | None = None,
-    max_iterations: int = 20,
+    max_iterations: int = 50,
     fit_alpha: float = 1e-3,
 ) -> RelocationResult:
     """Solve one anchor's position from its ranges to the other anchors.
@@ -108,7 +108,8 @@ def relocate_anchor(
         others_covariance: optional (k, dim, dim) covariance of the others' estimates.
         prior: optional (dim,) the anchor's own prediction (odometry); ``prior_covariance``
             (dim, dim) its covariance (required with a prior).
-        max_iterations: Gauss-Newton iterations per start.
+        max_iterations: Gauss-Newton iterations per start (near the others' line or plane the
+            undamped steps can take 20-25 to settle).
         fit_alpha: significance of the chi-square fit test and of the ambiguity margin.
 
     Raises:
@@ -161,7 +162,7 @@ def relocate_anchor(
 
     def solve(start):
         p = start.copy()
-        it = 0
+        it, done = 0, False
         for it in range(1, max_iterations + 1):
             u = model.jacobian(p)
             s2 = var if cov_others is None else var + np.einsum("ki,kij,kj->k", u, cov_others, u)
@@ -177,6 +178,7 @@ def relocate_anchor(
                 return p, np.inf, None, s2, it, False
             p = p - step
             if float(step @ step) < 1e-16:
+                done = True  # (on the last iteration too)
                 break
         u = model.jacobian(p)
         s2 = var if cov_others is None else var + np.einsum("ki,kij,kj->k", u, cov_others, u)
@@ -184,7 +186,7 @@ def relocate_anchor(
         chi2 = float(r @ (r / s2))
         total = chi2 + (0.0 if info_prior is None else float((p - prior) @ info_prior @ (p - prior)))
         a = (u / s2[:, None]).T @ u + (0 if info_prior is None else info_prior)
-        return p, total, a, s2, it, it < max_iterations
+        return p, total, a, s2, it, done
 
     starts = []
     if prior is not None:
@@ -221,6 +223,9 @@ def relocate_anchor(
         if other[2] is not None and np.isfinite(other[1]):
             finite.append(other)
     best = min(finite, key=lambda s: s[1])
+    if not best[5]:  # a start that stopped short at the same point as a converged one, lower by rounding
+        twins = [s for s in finite if s[5] and np.linalg.norm(s[0] - best[0]) < 1e-6]
+        best = min(twins, key=lambda s: s[1]) if twins else best
     p, total, a, s2, iterations, converged = best
     try:
         cov = np.linalg.inv(a)
