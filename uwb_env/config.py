@@ -323,12 +323,22 @@ class SimConfig(ConfigBase):
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
     ranging: RangingConfig = field(default_factory=RangingConfig)
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
+    # 3D: each anchor robot knows its antenna's mount height to this std (measured once; the
+    # robots keep their heights), and every calibration uses it: the first one fixes the frame
+    # on the heights (a yaw-only alignment), team rounds solve the plane on the ranges'
+    # horizontal parts, relocations take the height as a prior. None: the ranges alone decide
+    # the heights (four anchors at similar heights fix them only weakly).
+    known_heights_std_m: float | None = None
 
     def __post_init__(self) -> None:
         self._integer("dim", 2, 3)
         self._integer("n_anchors", self.dim + 1, 256)
         self._integer("n_tags", 0, 10_000)
         self._positive("dt_s", "area_size_m", "area_height_m")
+        if self.known_heights_std_m is not None:
+            self._positive("known_heights_std_m")
+            if self.dim != 3:
+                raise ConfigError("known_heights_std_m", self.known_heights_std_m, "needs dim=3")
         if not 0.0 <= self._finite("anchor_jitter_fraction") < 0.5:
             raise ConfigError(
                 "anchor_jitter_fraction", self.anchor_jitter_fraction, "must be in [0, 0.5)"

@@ -18,7 +18,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from uwb_env.config import EnvConfig
+from uwb_env.config import ConfigError, EnvConfig
 from uwb_env.features import anchor_features
 from uwb_env.localization import GeometryError, LocalizationError, calibrate_anchors, locate_tags, rigid_align
 from uwb_env.localization._tracking_kernel import residual_statistics
@@ -87,6 +87,9 @@ class LocalizationSystem:
         # ``world``: anything with the World interface, e.g. the hardware backend (no truth).
         self.world = world if world is not None else World(self.config.sim, range_model)
         self.ground_truth = getattr(self.world, "has_ground_truth", True)
+        if self.config.sim.known_heights_std_m is not None and not self.ground_truth:
+            raise ConfigError("sim.known_heights_std_m", self.config.sim.known_heights_std_m,
+                              "is simulated (drawn from the true heights): not available with this world")
         self.range_model = self.world.range_model
         self.n_anchors = self.config.sim.n_anchors
         self.n_tags = self.config.sim.n_tags
@@ -121,11 +124,19 @@ class LocalizationSystem:
         self.tag_mirror_switches = 0  # fixes the ranges rejected in favour of their mirror
         self._links_round = None  # the round whose links last_round_links shows (rendering)
         self._round_path = self._new_round_path()  # the first calibration's rounds, all of them
+        self._known_z = None  # the anchors' known heights in the estimate frame (known_heights_std_m)
         result = self._first_calibration()
         # The solution describes the robots at the rounds' midpoint; the solver's frame
         # becomes the estimate frame: est = R (world - origin).
         path = self._round_path
-        if self.ground_truth:
+        if self.ground_truth and self._heights_known:
+            # heights known: the frame keeps the vertical (a turn about it, and a shift)
+            truth = path.midpoint_truth()
+            rot2, trans2 = rigid_align(truth[:, :2], result.positions[:, :2])
+            rot, trans = np.eye(3), np.append(trans2, np.mean(result.positions[:, 2] - truth[:, 2]))
+            rot[:2, :2] = rot2
+            self._known_z = result.positions[:, 2].copy()
+        elif self.ground_truth:
             rot, trans = rigid_align(path.midpoint_truth(), result.positions)
         else:  # on hardware the first calibration's frame simply is the frame
             rot, trans = np.eye(dim), np.zeros(dim)
@@ -137,6 +148,10 @@ class LocalizationSystem:
         # not-converged 3D known-heights solve is still the frame's; the verdict is reported)
         self._apply_solutions(solutions, odometry_since_mid, path.midpoint_drift(), always=True)
         self._fix_tags()
+
+    @property
+    def _heights_known(self) -> bool:
+        return self.dim == 3 and self.config.sim.known_heights_std_m is not None
 
     # views of the state's row (properties, not attributes bound at reset: a deepcopy or pickle
     # would copy bound views as arrays of their own, cut off from the state)
@@ -203,10 +218,15 @@ class LocalizationSystem:
                 carried = self._carried(matrix, times)
                 pooled = carried if pooled is None else pool_rounds(pooled, carried)
             try:
-                result = calibrate_anchors(
-                    pooled, dim=self.dim, loss=cfg.solver.loss,
-                    f_scale=cfg.solver.f_scale_sigmas, range_std_m=self.pair_range_std_m,
-                )
+                if self._heights_known:  # the plane from the ranges' horizontal parts, the heights given
+                    result = calibrate_anchors_known_heights(
+                        pooled, self.world.known_heights_m, cfg.sim.known_heights_std_m, mark_ambiguous=False,
+                        loss=cfg.solver.loss, f_scale=cfg.solver.f_scale_sigmas, range_std_m=self.pair_range_std_m)
+                else:
+                    result = calibrate_anchors(
+                        pooled, dim=self.dim, loss=cfg.solver.loss,
+                        f_scale=cfg.solver.f_scale_sigmas, range_std_m=self.pair_range_std_m,
+                    )
             except LocalizationError as err:
                 last = err
                 continue
@@ -327,8 +347,17 @@ class LocalizationSystem:
         # solver's starts and checks for whatever it hands back)
         prior_std = np.sqrt(np.maximum(self.predicted_anchor_var_m2(), self.range_std_m**2))
         carry = None if matrix.carry_var_m2 is None else matrix.carry_var_m2[None]
-        solutions = solve_later_rounds(matrix.mean_m[None], matrix.std_m[None], matrix.count[None], carry,
-                                       est_mid[None], prior_std[None], self.config.solver, self.pair_range_std_m)
+        if self._known_z is not None:  # the plane from the ranges' horizontal parts, the heights known
+            z = self._known_z
+            with np.errstate(invalid="ignore"):
+                flat = np.sqrt(np.maximum(matrix.mean_m**2 - (z[:, None] - z[None, :]) ** 2, 0.0))
+            planar = solve_later_rounds(flat[None], matrix.std_m[None], matrix.count[None], carry,
+                                        est_mid[None, :, :2], prior_std[None], self.config.solver,
+                                        self.pair_range_std_m)
+            solutions = planar.with_heights(z[None], self.config.sim.known_heights_std_m)
+        else:
+            solutions = solve_later_rounds(matrix.mean_m[None], matrix.std_m[None], matrix.count[None], carry,
+                                           est_mid[None], prior_std[None], self.config.solver, self.pair_range_std_m)
         return self._apply_solutions(solutions, self.world.anchors_est - est_mid, path.midpoint_drift())
 
     def _apply_solutions(self, solutions: RoundSolutions, since_mid: np.ndarray, drift_at_mid: dict,
@@ -383,8 +412,14 @@ class LocalizationSystem:
             var = self.pair_range_std_m**2 / np.maximum(count, 1)
             if matrix.carry_var_m2 is not None:
                 var = var + matrix.carry_var_m2[i, others]
+            prior, prior_cov = est_mid[i], cov[i]
+            if self._known_z is not None:  # the height is known: a sharp prior on it, uncoupled
+                prior, prior_cov = prior.copy(), prior_cov.copy()
+                prior[2] = self._known_z[i]
+                prior_cov[2, :] = prior_cov[:, 2] = 0.0
+                prior_cov[2, 2] = self.config.sim.known_heights_std_m**2
             res = relocate_anchor(ranges, est_mid[others], var,
-                                  others_covariance=cov[others], prior=est_mid[i], prior_covariance=cov[i])
+                                  others_covariance=cov[others], prior=prior, prior_covariance=prior_cov)
         except LocalizationError as err:
             return f"{type(err).__name__}: {err}"
         if not res.ok:  # a mirror fix or a fit the noise cannot explain: keep odometry, say why

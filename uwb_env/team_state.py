@@ -100,6 +100,23 @@ class RoundSolutions:
         self.fit[row] = FIT_ERROR
         self.message[row] = f"{type(err).__name__}: {err}"
 
+    def with_heights(self, heights_m: np.ndarray, height_std_m: float) -> RoundSolutions:
+        """These planar (dim 2) solutions as 3D ones with the given (C, N) heights, each known to
+        ``height_std_m`` and independent of the plane (``SimConfig.known_heights_std_m``)."""
+        c, n, dim = self.positions.shape
+        if dim != 2:
+            raise ValueError(f"with_heights needs planar solutions, got dim={dim}")
+        out = RoundSolutions(c, n, 3)
+        for name in ("fit", "chi2", "dof", "rms_m", "ambiguous", "compiled"):
+            setattr(out, name, getattr(self, name).copy())
+        out.message = list(self.message)
+        out.positions[..., :2] = self.positions
+        out.positions[..., 2] = heights_m
+        out.anchor_cov[:] = 0.0
+        out.anchor_cov[..., :2, :2] = self.anchor_cov
+        out.anchor_cov[..., 2, 2] = height_std_m**2
+        return out
+
 
 def solve_later_rounds(mean: np.ndarray, std: np.ndarray, count: np.ndarray, carry_var_m2: np.ndarray | None,
                        est_mid: np.ndarray, prior_std_m: np.ndarray, solver, pair_range_std_m: float) -> RoundSolutions:

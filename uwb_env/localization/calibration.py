@@ -1330,14 +1330,16 @@ def classical_mds(full: np.ndarray, dim: int) -> np.ndarray:
 
 
 def calibrate_anchors_known_heights(ranges: RangeMatrix, heights_m: np.ndarray, height_std_m: np.ndarray | float,
-                                    **kwargs) -> CalibrationResult:
+                                    *, mark_ambiguous: bool = True, **kwargs) -> CalibrationResult:
     """A 3D calibration whose heights come from elsewhere (the on-board estimates, an
     altimeter): each range becomes its horizontal part, sqrt(r^2 - dz^2) (0 where the range is
     shorter than the height difference), the plane is calibrated in 2D by
     :func:`calibrate_anchors` (``kwargs``: its arguments, ``dim`` excluded) and the heights are
     attached with variance ``height_std_m^2``. For anchors at similar heights, whose ranges fit
     a flat shape within their noise: the ranges cannot fix the heights then. The result is
-    marked ``ambiguous`` (the ranges alone did not decide the shape)."""
+    marked ``ambiguous`` (the ranges alone did not decide the shape), unless
+    ``mark_ambiguous=False``: heights that are known (measured mount heights), not a fallback,
+    leave the plane's own verdict."""
     heights = np.asarray(heights_m, dtype=float)
     n = ranges.n_anchors
     if heights.shape != (n,) or not np.isfinite(heights).all():
@@ -1354,4 +1356,5 @@ def calibrate_anchors_known_heights(ranges: RangeMatrix, heights_m: np.ndarray, 
     cov[:, :2, :, :2] = plane.covariance.reshape(n, 2, n, 2)
     cov[np.arange(n), 2, np.arange(n), 2] = std**2
     return replace(plane, positions=np.column_stack([plane.positions, heights]), covariance=cov.reshape(3 * n, 3 * n),
-                   message=f"heights given, plane from the ranges: {plane.message}", ambiguous=True)
+                   message=f"heights given, plane from the ranges: {plane.message}",
+                   ambiguous=True if mark_ambiguous else plane.ambiguous)

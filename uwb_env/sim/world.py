@@ -94,6 +94,10 @@ class World(RoundRunner):
         anchors = self.initial_anchors(rng)
         self.motion.reset(np.vstack([anchors, self.initial_tags(anchors, rng)]), rng)
         self.odometry.reset(cfg.n_anchors, rng)
+        # what each robot was told of its antenna's height (``known_heights_std_m``; drawn last so
+        # that the option leaves every other draw where it was)
+        std = cfg.known_heights_std_m
+        self.known_heights_m = None if std is None else anchors[:, 2] + std * rng.standard_normal(cfg.n_anchors)
         self.set_estimate_frame(np.eye(cfg.dim), np.zeros(cfg.dim))
         self.anchors_est = anchors.copy()
         self.round = None
