@@ -22,7 +22,7 @@ from uwb_env.config import ConfigError, EnvConfig
 from uwb_env.features import anchor_features
 from uwb_env.localization import GeometryError, LocalizationError, calibrate_anchors, locate_tags, rigid_align
 from uwb_env.localization._tracking_kernel import residual_statistics
-from uwb_env.localization.calibration import calibrate_anchors_known_heights
+from uwb_env.localization.calibration import calibrate_anchors_known_heights, horizontal_ranges
 from uwb_env.localization.multilateration import (
     TAG_NO_FIX,
     TAG_OK,
@@ -349,8 +349,7 @@ class LocalizationSystem:
         carry = None if matrix.carry_var_m2 is None else matrix.carry_var_m2[None]
         if self._known_z is not None:  # the plane from the ranges' horizontal parts, the heights known
             z = self._known_z
-            with np.errstate(invalid="ignore"):
-                flat = np.sqrt(np.maximum(matrix.mean_m**2 - (z[:, None] - z[None, :]) ** 2, 0.0))
+            flat = horizontal_ranges(matrix.mean_m, z)
             planar = solve_later_rounds(flat[None], matrix.std_m[None], matrix.count[None], carry,
                                         est_mid[None, :, :2], prior_std[None], self.config.solver,
                                         self.pair_range_std_m)

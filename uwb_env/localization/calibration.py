@@ -1329,6 +1329,15 @@ def classical_mds(full: np.ndarray, dim: int) -> np.ndarray:
     return vecs[:, order] * np.sqrt(vals[order])
 
 
+def horizontal_ranges(mean_m: np.ndarray, heights_m: np.ndarray) -> np.ndarray:
+    """(N, N) horizontal parts sqrt(r^2 - dz^2) of pair ranges ``mean_m`` between anchors at
+    ``heights_m`` (0 where a range is shorter than the height difference; NaN stays NaN)."""
+    dz = heights_m[:, None] - heights_m[None, :]
+    with np.errstate(invalid="ignore"):
+        flat = np.sqrt(np.maximum(mean_m**2 - dz**2, 0.0))
+    return np.where(np.isfinite(mean_m), flat, np.nan)
+
+
 def calibrate_anchors_known_heights(ranges: RangeMatrix, heights_m: np.ndarray, height_std_m: np.ndarray | float,
                                     *, mark_ambiguous: bool = True, **kwargs) -> CalibrationResult:
     """A 3D calibration whose heights come from elsewhere (the on-board estimates, an
@@ -1347,11 +1356,7 @@ def calibrate_anchors_known_heights(ranges: RangeMatrix, heights_m: np.ndarray, 
     std = np.broadcast_to(np.asarray(height_std_m, dtype=float), (n,))
     if not np.all(np.isfinite(std) & (std >= 0)):
         raise SolverArgumentError(f"height_std_m={height_std_m!r}: must be finite and >= 0")
-    dz = heights[:, None] - heights[None, :]
-    with np.errstate(invalid="ignore"):
-        horizontal = np.sqrt(np.maximum(ranges.mean_m**2 - dz**2, 0.0))
-    plane = calibrate_anchors(replace(ranges, mean_m=np.where(np.isfinite(ranges.mean_m), horizontal, np.nan)),
-                              dim=2, **kwargs)
+    plane = calibrate_anchors(replace(ranges, mean_m=horizontal_ranges(ranges.mean_m, heights)), dim=2, **kwargs)
     cov = np.zeros((n, 3, n, 3))
     cov[:, :2, :, :2] = plane.covariance.reshape(n, 2, n, 2)
     cov[np.arange(n), 2, np.arange(n), 2] = std**2
